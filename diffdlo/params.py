@@ -1,0 +1,184 @@
+"""Cable parameters: a frozen dataclass loaded and validated from ``params/*.yaml``."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+PARAMS_DIR = Path(__file__).resolve().parent.parent / "params"
+
+CONTROLLERS = ("kinematic", "pid")
+
+# YAML section -> {yaml key: dataclass field}. Every key is required.
+_LAYOUT = {
+    "model": {
+        "n_nodes": "n_nodes", "length": "length", "mass": "mass", "k_s": "k_s", "k_b": "k_b",
+        "k_d": "k_d", "dt": "dt", "k_f": "k_f",
+    },
+    "controller": {
+        "type": "controller", "max_speed": "max_speed", "max_disp": "max_disp", "max_steps": "max_drag_steps",
+        "k_p": "k_p", "k_i": "k_i", "k_ff": "k_ff", "ff_len": "ff_len", "ff_dt": "ff_dt",
+    },
+    "settle": {
+        "threshold": "settle_threshold", "check_every": "settle_check_every",
+        "max_substeps": "settle_max_substeps",
+    },
+    "env": {
+        "sigma": "sigma", "action_scale": "action_scale", "workspace": "workspace",
+        "max_steps": "max_episode_steps", "success_tol": "success_tol", "success_bonus": "success_bonus",
+    },
+}
+
+
+class ParamsError(ValueError):
+    """A cable parameter file or value is invalid; the message names the field and the value."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CableParams:
+    """All numbers of the cable model, its controller, the settle rule and the task. See params/cable.yaml."""
+
+    # model (Table 2.1)
+    n_nodes: int
+    length: float
+    mass: float
+    k_s: float
+    k_b: float
+    k_d: float
+    dt: float
+    k_f: float
+    # controller (Chapter 2 §1)
+    controller: str
+    max_speed: float
+    max_disp: float
+    max_drag_steps: int
+    k_p: float
+    k_i: float
+    k_ff: float
+    ff_len: float
+    ff_dt: float
+    # free evolution (Algorithms 1-3)
+    settle_threshold: float
+    settle_check_every: int
+    settle_max_substeps: int
+    # task (Algorithms 1-2, DESIGN.md)
+    sigma: float
+    action_scale: float
+    workspace: tuple[float, float]
+    max_episode_steps: int
+    success_tol: float
+    success_bonus: float
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+    @property
+    def rest_length(self) -> float:
+        """Rest length of one link [m]."""
+        return self.length / (self.n_nodes - 1)
+
+    @property
+    def node_mass(self) -> float:
+        """Mass of one node [kg]: the total mass shared equally."""
+        return self.mass / self.n_nodes
+
+    def stability_margin(self) -> float:
+        """dt^2 w_max^2 / limit of the semi-implicit Euler step with implicit damping; stable below 1.
+
+        For a mode of angular frequency w the step is stable iff dt^2 w^2 < 2 (2 + dt k_d / m). w_max^2 is
+        bounded by the stiffest axial mode 4 k_s / m plus the stiffest bending mode 16 k_b / (l0^2 m).
+        """
+        m = self.node_mass
+        w2 = (4.0 * self.k_s + 16.0 * self.k_b / self.rest_length ** 2) / m
+        return self.dt ** 2 * w2 / (2.0 * (2.0 + self.dt * self.k_d / m))
+
+
+def _check_number(name: str, value: Any, *, integer: bool = False) -> None:
+    kinds = (int,) if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kinds):
+        want = "an integer" if integer else "a number"
+        raise ParamsError(f"cable parameter {name!r} must be {want}, got {value!r} ({type(value).__name__})")
+    if not math.isfinite(value):
+        raise ParamsError(f"cable parameter {name!r} must be finite, got {value!r}")
+
+
+def validate(p: CableParams) -> None:
+    """Raise ParamsError naming the first bad field and its value."""
+    ints = {"n_nodes", "max_drag_steps", "settle_check_every", "settle_max_substeps", "max_episode_steps"}
+    for f in dataclasses.fields(p):
+        value = getattr(p, f.name)
+        if f.name == "controller":
+            if value not in CONTROLLERS:
+                raise ParamsError(f"cable parameter 'controller' must be one of {CONTROLLERS}, got {value!r}")
+        elif f.name == "workspace":
+            if not isinstance(value, (tuple, list)) or len(value) != 2:
+                raise ParamsError(f"cable parameter 'workspace' must be [width, height], got {value!r}")
+            for v in value:
+                _check_number("workspace", v)
+                if v <= 0:
+                    raise ParamsError(f"cable parameter 'workspace' must be positive, got {value!r}")
+        else:
+            _check_number(f.name, value, integer=f.name in ints)
+    if p.n_nodes < 3:
+        raise ParamsError(f"cable parameter 'n_nodes' must be at least 3 (bending needs an interior node), "
+                          f"got {p.n_nodes}")
+    for name in ("length", "mass", "dt", "max_speed", "max_disp", "max_drag_steps", "settle_check_every",
+                 "action_scale", "success_tol"):
+        if getattr(p, name) <= 0:
+            raise ParamsError(f"cable parameter {name!r} must be positive, got {getattr(p, name)!r}")
+    for name in ("k_s", "k_b", "k_d", "k_f", "k_p", "k_i", "k_ff", "ff_len", "ff_dt", "settle_threshold",
+                 "settle_max_substeps", "sigma", "success_bonus", "max_episode_steps"):
+        if getattr(p, name) < 0:
+            raise ParamsError(f"cable parameter {name!r} must not be negative, got {getattr(p, name)!r}")
+    if p.max_episode_steps < 1:
+        raise ParamsError(f"cable parameter 'max_episode_steps' must be at least 1, got {p.max_episode_steps}")
+    margin = p.stability_margin()
+    if margin >= 1.0:
+        raise ParamsError(
+            f"cable parameter 'dt' = {p.dt} makes the integrator unstable with k_s={p.k_s}, k_b={p.k_b}, "
+            f"k_d={p.k_d}, node mass={p.node_mass:.4g}: dt^2*w_max^2 is {margin:.3g}x the stability limit "
+            f"(must be < 1); use a smaller dt")
+
+
+def load_params(name_or_path: str | Path = "cable", **overrides: Any) -> CableParams:
+    """Load cable parameters by name (``params/<name>.yaml``) or from a YAML path, then apply overrides.
+
+    Raises ParamsError naming the missing or bad field.
+    """
+    path = Path(name_or_path)
+    if path.suffix not in (".yaml", ".yml"):
+        path = PARAMS_DIR / f"{name_or_path}.yaml"
+    if not path.is_file():
+        raise ParamsError(f"no cable parameter file {str(name_or_path)!r} (looked for {path})")
+    with open(path) as fh:
+        try:
+            raw = yaml.safe_load(fh)
+        except yaml.YAMLError as exc:
+            raise ParamsError(f"{path} is not valid YAML: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise ParamsError(f"{path} must hold a mapping with sections {list(_LAYOUT)}, got {type(raw).__name__}")
+    values: dict[str, Any] = {}
+    for section, keys in _LAYOUT.items():
+        block = raw.get(section)
+        if not isinstance(block, dict):
+            raise ParamsError(f"{path}: missing section {section!r}")
+        for key, field in keys.items():
+            if key not in block:
+                raise ParamsError(f"{path}: missing field '{section}.{key}'")
+            values[field] = block[key]
+        unknown = set(block) - set(keys)
+        if unknown:
+            raise ParamsError(f"{path}: unknown field(s) in section {section!r}: {sorted(unknown)}")
+    unknown_sections = set(raw) - set(_LAYOUT)
+    if unknown_sections:
+        raise ParamsError(f"{path}: unknown section(s) {sorted(unknown_sections)}")
+    bad = set(overrides) - {f.name for f in dataclasses.fields(CableParams)}
+    if bad:
+        raise ParamsError(f"unknown cable parameter override(s) {sorted(bad)}")
+    values.update(overrides)
+    if isinstance(values["workspace"], list):
+        values["workspace"] = tuple(values["workspace"])
+    return CableParams(**values)

@@ -1,0 +1,82 @@
+"""Rewards (thesis eq 2.7-2.11) and task metrics (DESIGN.md), batched: rope (B, N, 2), target (N, 2) or (B, N, 2)."""
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def abs_diff(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) eq 2.7 sum_i |x_i - y_i| (Euclidean distance per node, absolute positions)."""
+    return (pos - target).norm(dim=-1).sum(-1)
+
+
+def reward_abs_diff(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) eq 2.7: R = -sum_i |x_i - y_i|."""
+    return -abs_diff(pos, target)
+
+
+def reward_delta_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) eq 2.8: R = sum_i |x_{i,t-1} - y_i| - sum_i |x_{i,t} - y_i| (positive when the move helped)."""
+    return abs_diff(prev_pos, target) - abs_diff(pos, target)
+
+
+def pairwise_shape_term(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) eq 2.10: P = sum_j sum_i | ||x_j - x_i|| - ||y_j - y_i|| | over all ordered pairs."""
+    target = target.expand_as(pos)
+    return (_pair_distances(pos) - _pair_distances(target)).abs().sum((-1, -2))
+
+
+def _pair_distances(pos: torch.Tensor) -> torch.Tensor:
+    # Differentiable at coincident nodes (the diagonal): norm's gradient at 0 is NaN, so add 0 there explicitly.
+    diff = pos.unsqueeze(-2) - pos.unsqueeze(-3)
+    sq = (diff * diff).sum(-1)
+    eye = torch.eye(pos.shape[-2], dtype=torch.bool, device=pos.device)
+    return torch.where(eye, torch.zeros_like(sq), sq.masked_fill(eye, 1.0).sqrt())
+
+
+def end_to_end_angle(pos: torch.Tensor) -> torch.Tensor:
+    """(B,) eq 2.11's angle atan2(y_0 - y_n, x_0 - x_n) of the line from the last node to the first."""
+    d = pos[..., 0, :] - pos[..., -1, :]
+    return torch.atan2(d[..., 1], d[..., 0])
+
+
+def orientation_error(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) eq 2.11 O: difference of the end-to-end angles, wrapped to [0, pi] (the printed form is not)."""
+    diff = end_to_end_angle(pos) - end_to_end_angle(target.expand_as(pos))
+    return torch.remainder(diff + math.pi, 2 * math.pi).sub(math.pi).abs()
+
+
+def reward_position_orientation(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) eq 2.9: reward = -P - O."""
+    return -pairwise_shape_term(pos, target) - orientation_error(pos, target)
+
+
+def shape_error(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) mean node distance [m] between rope and target after aligning their centroids.
+
+    Translation-free, orientation-sensitive; node i is compared with target node i (DESIGN.md).
+    """
+    target = target.expand_as(pos)
+    a = pos - pos.mean(dim=-2, keepdim=True)
+    b = target - target.mean(dim=-2, keepdim=True)
+    return (a - b).norm(dim=-1).mean(-1)
+
+
+def is_success(pos: torch.Tensor, target: torch.Tensor, tol: float = 0.01) -> torch.Tensor:
+    """(B,) bool: shape_error < tol (default 1 cm, 2% of the rope length)."""
+    return shape_error(pos, target) < tol
+
+
+REWARDS = ("position_orientation", "abs_diff", "delta_gain")
+
+
+def reward(kind: str, prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) the reward named ``kind`` (one of REWARDS) for the move prev_pos -> pos."""
+    if kind == "position_orientation":
+        return reward_position_orientation(pos, target)
+    if kind == "abs_diff":
+        return reward_abs_diff(pos, target)
+    if kind == "delta_gain":
+        return reward_delta_gain(prev_pos, pos, target)
+    raise ValueError(f"unknown reward {kind!r}: use one of {list(REWARDS)}")

@@ -1,0 +1,230 @@
+"""The batched, differentiable cable simulator: grasp -> drag -> release -> settle (Algorithm 2, model.move_idx).
+
+State is plain tensors with a leading batch dimension: positions and velocities (B, N, 2). The Simulator only
+holds the (immutable) parameters, device and dtype; every method is a function of its inputs.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import torch
+
+from . import control, shapes
+from .forces import energy, internal_forces
+from .integrate import max_speed, semi_implicit_step
+from .params import CableParams, load_params
+
+# A rope farther than this from the origin [m] has diverged (50x the thesis's 2 m workspace).
+DIVERGENCE_RADIUS = 100.0
+
+
+class SimulationError(RuntimeError):
+    """The simulation produced NaN/inf or diverged; the message names the batch members and the action."""
+
+
+@dataclasses.dataclass
+class MoveInfo:
+    """What one ``move`` did, per rope (CPU tensors of shape (B,))."""
+
+    drag_substeps: torch.Tensor      # substeps with the node grasped
+    settle_substeps: torch.Tensor    # substeps of free evolution after release
+    settled: torch.Tensor            # bool: reached the speed threshold (False: stopped by the cap)
+    frames: torch.Tensor | None = None   # (T, B, N, 2) positions every ``record_every`` substeps, if asked
+
+    @property
+    def substeps(self) -> torch.Tensor:
+        return self.drag_substeps + self.settle_substeps
+
+
+class Simulator:
+    """Batched planar mass-spring cable on ``device`` in ``dtype``. See DESIGN.md for the API."""
+
+    def __init__(self, params: CableParams | str | None = None, device: torch.device | str = "cpu",
+                 dtype: torch.dtype = torch.float32):
+        if params is None or isinstance(params, str):
+            params = load_params(params or "cable")
+        if not isinstance(params, CableParams):
+            raise TypeError(f"params must be a CableParams, a params name or None, got {type(params).__name__}")
+        if dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        try:
+            self.device = torch.device(device)
+            torch.empty(0, device=self.device)
+        except (RuntimeError, AssertionError) as exc:
+            raise ValueError(f"device {str(device)!r} is not available: {exc}") from exc
+        self.params = params
+        self.dtype = dtype
+
+    def __repr__(self) -> str:
+        return (f"Simulator(n_nodes={self.params.n_nodes}, controller={self.params.controller!r}, "
+                f"device={str(self.device)!r}, dtype={self.dtype})")
+
+    # ----------------------------------------------------------------- input checks
+    def _check_state(self, name: str, x: torch.Tensor) -> None:
+        n = self.params.n_nodes
+        if not torch.is_tensor(x):
+            raise TypeError(f"{name} must be a torch.Tensor of shape (B, {n}, 2), got {type(x).__name__}")
+        if x.ndim != 3 or x.shape[1:] != (n, 2):
+            raise ValueError(f"{name} must have shape (B, {n}, 2), got {tuple(x.shape)}")
+        self._check_placement(name, x)
+        if not torch.isfinite(x).all():
+            bad = (~torch.isfinite(x)).flatten(1).any(1).nonzero().flatten().tolist()
+            raise ValueError(f"{name} contains NaN or inf (batch members {bad})")
+
+    def _check_placement(self, name: str, x: torch.Tensor) -> None:
+        if x.device != self.device and not (x.device.type == self.device.type and self.device.index is None):
+            raise ValueError(f"{name} is on {x.device} but the simulator is on {self.device}")
+        if x.dtype != self.dtype:
+            raise ValueError(f"{name} has dtype {x.dtype} but the simulator uses {self.dtype}")
+
+    def _check_action(self, pos: torch.Tensor, node: Any, delta: torch.Tensor) -> torch.Tensor:
+        batch, n = pos.shape[0], self.params.n_nodes
+        if not torch.is_tensor(node) or node.dtype not in (torch.int64, torch.int32):
+            raise TypeError(f"node must be an integer tensor of shape ({batch},), got {node!r}")
+        if node.shape != (batch,):
+            raise ValueError(f"node must have shape ({batch},), got {tuple(node.shape)}")
+        if ((node < 0) | (node >= n)).any():
+            bad = node[(node < 0) | (node >= n)].tolist()
+            raise ValueError(f"node ids must be in [0, {n - 1}], got {bad}")
+        if not torch.is_tensor(delta) or delta.shape != (batch, 2):
+            shape = tuple(delta.shape) if torch.is_tensor(delta) else type(delta).__name__
+            raise ValueError(f"delta must be a tensor of shape ({batch}, 2) in metres, got {shape}")
+        self._check_placement("delta", delta)
+        if not torch.isfinite(delta).all():
+            raise ValueError(f"delta contains NaN or inf: {delta[~torch.isfinite(delta).all(-1)].tolist()}")
+        return node.to(device=pos.device, dtype=torch.int64)
+
+    def _check_finite(self, pos: torch.Tensor, where: str) -> None:
+        with torch.no_grad():
+            bad = ~torch.isfinite(pos).flatten(1).all(1) | (pos.abs().flatten(1).amax(1) > DIVERGENCE_RADIUS)
+            if bad.any():
+                ids = bad.nonzero().flatten().tolist()
+                raise SimulationError(f"simulation diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for "
+                                      f"batch members {ids} {where}")
+
+    # ----------------------------------------------------------------- physics
+    def energy(self, pos: torch.Tensor) -> torch.Tensor:
+        """(B, N, 2) -> (B,) potential energy [J]."""
+        p = self.params
+        return energy(pos, p.rest_length, p.k_s, p.k_b)
+
+    def internal_forces(self, pos: torch.Tensor) -> torch.Tensor:
+        """(B, N, 2) -> (B, N, 2) axial + bending forces [N] (no damping, no grasp)."""
+        p = self.params
+        return internal_forces(pos, p.rest_length, p.k_s, p.k_b)
+
+    def substep(self, pos: torch.Tensor, vel: torch.Tensor,
+                external: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """One integrator substep of dt (semi-implicit Euler, implicit damping)."""
+        p = self.params
+        force = self.internal_forces(pos)
+        if external is not None:
+            force = force + external
+        return semi_implicit_step(pos, vel, force, p.dt, p.node_mass, p.k_d)
+
+    def integrate(self, pos: torch.Tensor, vel: torch.Tensor | None,
+                  n_substeps: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Free evolution (no grasp) for n_substeps substeps of dt. Returns (pos, vel)."""
+        self._check_state("pos", pos)
+        vel = torch.zeros_like(pos) if vel is None else vel
+        self._check_state("vel", vel)
+        if not isinstance(n_substeps, int) or n_substeps < 0:
+            raise ValueError(f"n_substeps must be a non-negative integer, got {n_substeps!r}")
+        for _ in range(n_substeps):
+            pos, vel = self.substep(pos, vel)
+        self._check_finite(pos, f"after {n_substeps} free substeps")
+        return pos, vel
+
+    def settle(self, pos: torch.Tensor, vel: torch.Tensor | None = None,
+               return_info: bool = False) -> torch.Tensor | tuple[torch.Tensor, MoveInfo]:
+        """Free evolution until each rope is at rest (the thesis's model.free); settled ropes stop changing."""
+        batch = pos.shape[0] if torch.is_tensor(pos) and pos.ndim == 3 else 1
+        node = torch.zeros(batch, dtype=torch.int64, device=self.device)
+        delta = torch.zeros(batch, 2, dtype=self.dtype, device=self.device)
+        return self.move(pos, node, delta, vel=vel, return_info=return_info)
+
+    def move(self, pos: torch.Tensor, node: torch.Tensor, delta: torch.Tensor, *, vel: torch.Tensor | None = None,
+             return_info: bool = False, record_every: int = 0) -> torch.Tensor | tuple[torch.Tensor, MoveInfo]:
+        """Grasp ``node`` (B,), drag it by ``delta`` (B, 2) [m], release, and settle. Returns the new positions.
+
+        The rope starts at rest unless ``vel`` is given. Drags longer than ``max_disp`` are shortened along their
+        direction. Each rope runs its own drag and its own settle (speed checked every ``settle_check_every``
+        substeps after its release, capped at ``settle_max_substeps``) and is frozen once settled, so batch
+        members never influence each other. Differentiable w.r.t. ``pos``, ``delta`` (and ``vel``).
+        With ``return_info`` returns ``(pos, MoveInfo)``; ``record_every > 0`` also records frames.
+        """
+        p = self.params
+        self._check_state("pos", pos)
+        node = self._check_action(pos, node, delta)
+        vel = torch.zeros_like(pos) if vel is None else vel
+        self._check_state("vel", vel)
+        batch = pos.shape[0]
+
+        delta = control.clip_drag(delta, p.max_disp)
+        distance = delta.norm(dim=-1)
+        speed = control.drag_speed(distance, p)
+        path_steps = control.path_substeps(distance, p)                       # (B,) on device
+        grasp_steps = torch.where(path_steps > 0, path_steps + control.hold_substeps(p), path_steps)
+        grasp_steps_cpu = grasp_steps.cpu()
+        grasped = torch.nn.functional.one_hot(node, p.n_nodes).to(torch.bool).unsqueeze(-1)   # (B, N, 1)
+        start = pos.gather(1, node.view(batch, 1, 1).expand(batch, 1, 2)).squeeze(1)           # (B, 2)
+        integral = torch.zeros_like(start)
+
+        done = torch.zeros(batch, dtype=torch.bool)                      # CPU copy drives the loop
+        done_dev = done.to(pos.device, copy=True)
+        settled = torch.zeros(batch, dtype=torch.bool)
+        finished_at = torch.zeros(batch, dtype=torch.int64)
+        frames = [pos.detach().clone()] if record_every > 0 else None
+        k = 0
+        while not bool(done.all()):
+            k += 1
+            dragging = (k <= grasp_steps).view(batch, 1, 1)
+            ref_pos, ref_vel = control.reference(start, delta, speed, k, p.dt)
+            external = None
+            if p.controller == "pid":
+                node_pos = (pos * grasped).sum(1)
+                error = ref_pos - node_pos
+                integral = integral + p.dt * error
+                external = (grasped & dragging) * control.pid_force(error, integral, ref_vel, k * p.dt, p).unsqueeze(1)
+            new_pos, new_vel = self.substep(pos, vel, external)
+            if p.controller == "kinematic":
+                on_path = grasped & dragging
+                new_pos = torch.where(on_path, ref_pos.unsqueeze(1), new_pos)
+                new_vel = torch.where(on_path, ref_vel.unsqueeze(1), new_vel)
+            frozen = done_dev.view(batch, 1, 1)
+            pos = torch.where(frozen, pos, new_pos)
+            vel = torch.where(frozen, vel, new_vel)
+            if frames is not None and k % record_every == 0:
+                frames.append(pos.detach().clone())
+
+            since_release = k - grasp_steps_cpu
+            check = ~done & (since_release > 0) & (since_release % p.settle_check_every == 0)
+            capped = ~done & (since_release >= p.settle_max_substeps)
+            if bool(check.any()) or bool(capped.any()):
+                self._check_finite(pos, f"during a move (node={node.tolist()}, delta={delta.tolist()})")
+                at_rest = max_speed(vel.detach()).cpu() < p.settle_threshold
+                now_settled = check & at_rest
+                settled |= now_settled
+                newly_done = now_settled | capped
+                finished_at[newly_done] = k
+                done = done | newly_done                         # out of place: `where` saved the old mask
+                done_dev = done.to(pos.device, copy=True)
+
+        self._check_finite(pos, f"after a move (node={node.tolist()}, delta={delta.tolist()})")
+        if not return_info:
+            return pos
+        if frames is not None and frames[-1] is not pos:
+            frames.append(pos.detach().clone())
+        info = MoveInfo(drag_substeps=grasp_steps_cpu, settle_substeps=finished_at - grasp_steps_cpu,
+                        settled=settled, frames=torch.stack(frames) if frames is not None else None)
+        return pos, info
+
+    # ----------------------------------------------------------------- shapes
+    def random_shape(self, batch: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """(B, N, 2) random initial shapes (thesis sigma), centred at the origin, on this device and dtype."""
+        return shapes.random_shape(batch, self.params, generator, self.device, self.dtype)
+
+    def target_shape(self, spec: Any) -> torch.Tensor:
+        """(N, 2) target shape on this device and dtype (see diffdlo.target_shape)."""
+        return shapes.target_shape(spec, self.params, self.device, self.dtype)

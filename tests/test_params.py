@@ -1,0 +1,73 @@
+"""load_params: the defaults load, and every bad file or value gives an error naming the field and the value."""
+import dataclasses
+from pathlib import Path
+
+import pytest
+import yaml
+
+import diffdlo
+from diffdlo.params import PARAMS_DIR, ParamsError
+
+
+def test_defaults_match_table_2_1(params):
+    assert (params.n_nodes, params.length, params.mass) == (20, 0.5, 0.2)
+    assert (params.k_s, params.k_b, params.k_d, params.dt) == (999.0, 0.01, 100.0, 0.001)
+    assert params.node_mass == pytest.approx(0.01) and params.rest_length == pytest.approx(0.5 / 19)
+    assert params.controller == "kinematic"
+    assert dataclasses.replace(params, k_d=0.0).k_d == 0.0
+    assert diffdlo.load_params(PARAMS_DIR / "cable.yaml") == params
+
+
+def write_variant(tmp_path: Path, section: str, key: str, value=None, drop=False) -> Path:
+    raw = yaml.safe_load(open(PARAMS_DIR / "cable.yaml"))
+    if drop:
+        del raw[section][key]
+    else:
+        raw[section][key] = value
+    path = tmp_path / "variant.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+@pytest.mark.parametrize("section,key,value,message", [
+    ("model", "k_s", None, r"missing field 'model\.k_s'"),
+    ("settle", "threshold", None, r"missing field 'settle\.threshold'"),
+    ("model", "k_s", "stiff", r"'k_s' must be a number, got 'stiff' \(str\)"),
+    ("model", "n_nodes", 20.5, r"'n_nodes' must be an integer, got 20\.5"),
+    ("model", "k_b", -0.01, r"'k_b' must not be negative, got -0\.01"),
+    ("model", "k_s", -5.0, r"'k_s' must not be negative, got -5\.0"),
+    ("model", "mass", -0.2, r"'mass' must be positive, got -0\.2"),
+    ("model", "mass", 0, r"'mass' must be positive, got 0"),
+    ("model", "n_nodes", 2, r"'n_nodes' must be at least 3.*got 2"),
+    ("model", "dt", 0.05, r"'dt' = 0\.05 makes the integrator unstable"),
+    ("controller", "type", "magic", r"'controller' must be one of \('kinematic', 'pid'\), got 'magic'"),
+    ("env", "workspace", [2.0], r"'workspace' must be \[width, height\], got \(2\.0,\)"),
+    ("model", "k_d", float("nan"), r"'k_d' must be finite, got nan"),
+    ("model", "k_s", True, r"'k_s' must be a number, got True"),
+])
+def test_bad_files_name_the_field_and_value(tmp_path, section, key, value, message):
+    path = write_variant(tmp_path, section, key, value, drop=value is None)
+    with pytest.raises(ParamsError, match=message):
+        diffdlo.load_params(path)
+
+
+def test_unknown_fields_files_and_overrides(tmp_path):
+    path = write_variant(tmp_path, "model", "k_twist", 1.0)
+    with pytest.raises(ParamsError, match=r"unknown field\(s\) in section 'model': \['k_twist'\]"):
+        diffdlo.load_params(path)
+    with pytest.raises(ParamsError, match="no cable parameter file 'nope'"):
+        diffdlo.load_params("nope")
+    with pytest.raises(ParamsError, match=r"unknown cable parameter override\(s\) \['stiffness'\]"):
+        diffdlo.load_params("cable", stiffness=3)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("model: [1, 2\n")
+    with pytest.raises(ParamsError, match="not valid YAML"):
+        diffdlo.load_params(bad)
+
+
+def test_replace_validates_too(params):
+    with pytest.raises(ParamsError, match=r"'k_s' must not be negative, got -1\.0"):
+        dataclasses.replace(params, k_s=-1.0)
+    with pytest.raises(ParamsError, match="unstable"):
+        dataclasses.replace(params, k_d=0.0, dt=0.01)
+    assert diffdlo.load_params("cable", k_d=0.0).k_d == 0.0
