@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from . import control, shapes
+from . import control, kernel, shapes
 from .forces import energy, internal_forces
 from .integrate import max_speed, semi_implicit_step
 from .params import CableParams, load_params
@@ -37,11 +37,20 @@ class MoveInfo:
         return self.drag_substeps + self.settle_substeps
 
 
+BACKENDS = ("auto", "kernel", "torch")
+
+
 class Simulator:
-    """Batched planar mass-spring cable on ``device`` in ``dtype``. See DESIGN.md for the API."""
+    """Batched planar mass-spring cable on ``device`` in ``dtype``. See DESIGN.md for the API.
+
+    ``backend``: "torch" is the eager reference path (every controller, frame recording, any device);
+    "kernel" is the fused C++ CPU kernel (kinematic controller; diffdlo/csrc/cable.cpp) with a hand-written
+    adjoint; "auto" (default) uses the kernel where it applies (CPU tensors, kinematic drag, no frame recording)
+    and the torch path elsewhere. Both run the same scheme and agree to rounding.
+    """
 
     def __init__(self, params: CableParams | str | None = None, device: torch.device | str = "cpu",
-                 dtype: torch.dtype = torch.float32):
+                 dtype: torch.dtype = torch.float32, backend: str = "auto"):
         if params is None or isinstance(params, str):
             params = load_params(params or "cable")
         if not isinstance(params, CableParams):
@@ -53,12 +62,29 @@ class Simulator:
             torch.empty(0, device=self.device)
         except (RuntimeError, AssertionError) as exc:
             raise ValueError(f"device {str(device)!r} is not available: {exc}") from exc
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if backend == "kernel":
+            if self.device.type != "cpu":
+                raise ValueError(f"backend 'kernel' runs on the CPU only, not on {self.device}; use 'auto' or 'torch'")
+            if params.controller != "kinematic":
+                raise ValueError(f"backend 'kernel' supports the kinematic controller only, not "
+                                 f"{params.controller!r}; use 'auto' or 'torch'")
+            if not kernel.available():
+                raise RuntimeError(f"backend 'kernel' is unavailable: {kernel.unavailable_reason()}")
         self.params = params
         self.dtype = dtype
+        self.backend = backend
 
     def __repr__(self) -> str:
         return (f"Simulator(n_nodes={self.params.n_nodes}, controller={self.params.controller!r}, "
-                f"device={str(self.device)!r}, dtype={self.dtype})")
+                f"device={str(self.device)!r}, dtype={self.dtype}, backend={self.backend!r})")
+
+    def uses_kernel(self, record_every: int = 0) -> bool:
+        """Whether moves and free evolution run in the fused C++ kernel."""
+        if self.backend == "torch" or self.device.type != "cpu" or record_every > 0:
+            return False
+        return self.params.controller == "kinematic" and (self.backend == "kernel" or kernel.available())
 
     # ----------------------------------------------------------------- input checks
     def _check_state(self, name: str, x: torch.Tensor) -> None:
@@ -131,6 +157,16 @@ class Simulator:
         self._check_state("vel", vel)
         if not isinstance(n_substeps, int) or n_substeps < 0:
             raise ValueError(f"n_substeps must be a non-negative integer, got {n_substeps!r}")
+        if n_substeps > 0 and self.uses_kernel():
+            batch = pos.shape[0]
+            setup = kernel.Setup(self.params, batch, fixed_steps=n_substeps, divergence_radius=DIVERGENCE_RADIUS)
+            zeros = torch.zeros(batch, dtype=torch.int64)
+            pos, vel, _, _, diverged = kernel.KernelRun.apply(
+                setup, pos, vel, zeros, torch.zeros(batch, 2, dtype=self.dtype),
+                torch.full((batch,), self.params.max_speed, dtype=self.dtype), zeros)
+            if diverged.any():
+                self._check_finite(pos, f"after {n_substeps} free substeps")
+            return pos, vel
         for _ in range(n_substeps):
             pos, vel = self.substep(pos, vel)
         self._check_finite(pos, f"after {n_substeps} free substeps")
@@ -165,6 +201,8 @@ class Simulator:
         distance = delta.norm(dim=-1)
         speed = control.drag_speed(distance, p)
         path_steps = control.path_substeps(distance, p)                       # (B,) on device
+        if self.uses_kernel(record_every):
+            return self._move_kernel(pos, vel, node, delta, speed, path_steps, return_info)
         grasp_steps = torch.where(path_steps > 0, path_steps + control.hold_substeps(p), path_steps)
         grasp_steps_cpu = grasp_steps.cpu()
         grasped = torch.nn.functional.one_hot(node, p.n_nodes).to(torch.bool).unsqueeze(-1)   # (B, N, 1)
@@ -219,6 +257,19 @@ class Simulator:
         info = MoveInfo(drag_substeps=grasp_steps_cpu, settle_substeps=finished_at - grasp_steps_cpu,
                         settled=settled, frames=torch.stack(frames) if frames is not None else None)
         return pos, info
+
+    def _move_kernel(self, pos, vel, node, delta, speed, path_steps, return_info):
+        setup = kernel.Setup(self.params, pos.shape[0], divergence_radius=DIVERGENCE_RADIUS)
+        # speed's dependence on delta is inside the kernel's adjoint, so it goes in detached
+        pos, _, steps, settled, diverged = kernel.KernelRun.apply(setup, pos, vel, node, delta, speed.detach(),
+                                                                  path_steps)
+        if diverged.any():
+            ids = diverged.nonzero().flatten().tolist()
+            raise SimulationError(f"simulation diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for batch "
+                                  f"members {ids} during a move (node={node.tolist()}, delta={delta.tolist()})")
+        if not return_info:
+            return pos
+        return pos, MoveInfo(drag_substeps=path_steps, settle_substeps=steps - path_steps, settled=settled)
 
     # ----------------------------------------------------------------- shapes
     def random_shape(self, batch: int, generator: torch.Generator | None = None) -> torch.Tensor:

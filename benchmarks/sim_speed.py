@@ -1,0 +1,128 @@
+"""Simulator speed and memory: the default (fused C++ kernel) path against the eager PyTorch reference loop.
+
+    python benchmarks/sim_speed.py [--batches 1 64 1024] [--device cpu] [--repeats 3]
+
+The eager reference is ``Simulator(backend="torch")``: the plain per-substep PyTorch loop of the same scheme at
+dt = 1 ms, run in the same process on the same inputs. For each batch size B it prints
+- env steps/s: ropes moved per second by one batched ``move()`` (drag + settle), and the ratio to eager;
+- sim s/s: simulated seconds per wall second of free evolution (1 s, 1000 substeps), and the ratio to eager;
+- deviation: max node distance [mm] of the float32 default path from the float64 eager reference after one
+  move and after 1 s of free evolution (first 64 ropes);
+- bwd/fwd: time of backward of one move over its forward (default path);
+then the peak memory of the gradient of a 10-move sequence at B=256 (measured in a fresh subprocess), and a final
+JSON line with every figure. Timings are medians of --repeats runs; the machine's other load shows up in them.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import torch
+
+import diffdlo
+
+
+def median_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def problem(sim: diffdlo.Simulator, batch: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    pos = sim.random_shape(batch, g)
+    node = torch.randint(0, sim.params.n_nodes, (batch,), generator=g).to(sim.device)
+    delta = ((torch.rand(batch, 2, generator=g) * 2 - 1) * sim.params.action_scale).to(sim.device, sim.dtype)
+    return pos, node, delta
+
+
+def memory_probe(batch: int, moves: int, backend: str) -> dict:
+    """Peak RSS growth [MB] while taking the gradient of a `moves`-move sequence (run in a fresh process)."""
+    sim = diffdlo.Simulator(diffdlo.load_params("cable"), backend=backend)
+    pos, node, delta = problem(sim, batch)
+    target = sim.target_shape("diagonal")
+    deltas = delta.unsqueeze(0).repeat(moves, 1, 1).requires_grad_(True)
+    start = pos.clone().requires_grad_(True)
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t0 = time.perf_counter()
+    x = start
+    for m in range(moves):
+        x = sim.move(x, node, deltas[m] * 0.5)
+    diffdlo.shape_error(x, target).sum().backward()
+    wall = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"batch": batch, "moves": moves, "backend": backend, "peak_rss_growth_mb": peak - base,
+            "peak_rss_mb": peak, "wall_s": wall, "grad_norm": float(deltas.grad.norm()),
+            "grad_finite": bool(torch.isfinite(deltas.grad).all() and torch.isfinite(start.grad).all())}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--memory-batch", type=int, default=256)
+    parser.add_argument("--memory-moves", type=int, default=10)
+    parser.add_argument("--_memory_probe", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args._memory_probe:
+        print(json.dumps(memory_probe(args.memory_batch, args.memory_moves, "auto")))
+        return
+
+    p = diffdlo.load_params("cable")
+    fast = diffdlo.Simulator(p, device=args.device)
+    eager = diffdlo.Simulator(p, device=args.device, backend="torch")
+    reference = diffdlo.Simulator(p, device=args.device, dtype=torch.float64, backend="torch")
+    print(f"default path: {'fused C++ kernel' if fast.uses_kernel() else 'torch'} on {fast.device}, "
+          f"{torch.get_num_threads()} threads")
+    header = (f"{'B':>6} {'env steps/s':>12} {'eager':>9} {'ratio':>7} {'sim s/s':>9} {'eager':>8} {'ratio':>7} "
+              f"{'dev move mm':>11} {'dev free mm':>11} {'bwd/fwd':>8}")
+    print(header)
+    rows = []
+    for batch in args.batches:
+        pos, node, delta = problem(fast, batch)
+        t_move = median_time(lambda: fast.move(pos, node, delta), args.repeats)
+        t_move_eager = median_time(lambda: eager.move(pos, node, delta), 1)
+        t_free = median_time(lambda: fast.integrate(pos, None, 1000), args.repeats)
+        t_free_eager = median_time(lambda: eager.integrate(pos, None, 1000), 1)
+        k = min(batch, 64)
+        ref_move = reference.move(pos[:k].double(), node[:k], delta[:k].double())
+        dev_move = (fast.move(pos[:k], node[:k], delta[:k]).double() - ref_move).norm(dim=-1).max().item() * 1000
+        ref_free = reference.integrate(pos[:k].double(), None, 1000)[0]
+        dev_free = (fast.integrate(pos[:k], None, 1000)[0].double() - ref_free).norm(dim=-1).max().item() * 1000
+        x, d = pos.clone().requires_grad_(True), delta.clone().requires_grad_(True)
+
+        def forward_backward():
+            fast.move(x, node, d).sum().backward()
+
+        t_fb = median_time(forward_backward, args.repeats)
+        row = {"batch": batch, "env_steps_per_s": batch / t_move, "eager_env_steps_per_s": batch / t_move_eager,
+               "ratio_env_steps": t_move_eager / t_move, "sim_s_per_s": 1.0 / t_free,
+               "eager_sim_s_per_s": 1.0 / t_free_eager, "ratio_sim_s": t_free_eager / t_free,
+               "deviation_move_mm": dev_move, "deviation_free_mm": dev_free,
+               "backward_over_forward": (t_fb - t_move) / t_move}
+        rows.append(row)
+        print(f"{batch:>6} {row['env_steps_per_s']:>12.1f} {row['eager_env_steps_per_s']:>9.2f} "
+              f"{row['ratio_env_steps']:>6.0f}x {row['sim_s_per_s']:>9.2f} {row['eager_sim_s_per_s']:>8.3f} "
+              f"{row['ratio_sim_s']:>6.0f}x {dev_move:>11.2e} {dev_free:>11.2e} {row['backward_over_forward']:>8.2f}",
+              flush=True)
+    probe = subprocess.run([sys.executable, __file__, "--_memory_probe", "--memory-batch", str(args.memory_batch),
+                            "--memory-moves", str(args.memory_moves)], capture_output=True, text=True, check=True)
+    memory = json.loads(probe.stdout.strip().splitlines()[-1])
+    print(f"gradient of a {memory['moves']}-move sequence at B={memory['batch']}: peak memory growth "
+          f"{memory['peak_rss_growth_mb']:.0f} MB (process peak {memory['peak_rss_mb']:.0f} MB), "
+          f"{memory['wall_s']:.1f} s, gradient finite: {memory['grad_finite']}")
+    print(json.dumps({"device": str(fast.device), "threads": torch.get_num_threads(), "rows": rows,
+                      "memory": memory}))
+
+
+if __name__ == "__main__":
+    main()

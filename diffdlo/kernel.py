@@ -1,0 +1,168 @@
+"""The fused C++ CPU kernel (diffdlo/csrc/cable.cpp): build on first use, call through ctypes, autograd wrapper.
+
+The kernel is plain C++ with a C ABI, so building it needs only a C++ compiler (g++ or c++ on PATH, or $CXX) and
+takes a few seconds; nothing from PyTorch's headers is compiled. The shared library is cached in
+``$DIFFDLO_CACHE`` (default ``~/.cache/diffdlo``) under a hash of the source and flags. If no compiler is found or
+the build fails, ``available()`` is False, the reason is in ``unavailable_reason()``, and the simulator uses its
+pure-torch path.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+import torch
+
+SOURCE = Path(__file__).resolve().parent / "csrc" / "cable.cpp"
+FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-fopenmp"]
+
+_lock = threading.Lock()
+_lib: ctypes.CDLL | None = None
+_error: str | None = None
+
+
+def _cache_dir() -> Path:
+    return Path(os.environ.get("DIFFDLO_CACHE", Path.home() / ".cache" / "diffdlo"))
+
+
+def _compiler() -> str | None:
+    for name in (os.environ.get("CXX"), "g++", "c++", "clang++"):
+        if name and shutil.which(name):
+            return name
+    return None
+
+
+def _build() -> ctypes.CDLL:
+    compiler = _compiler()
+    if compiler is None:
+        raise RuntimeError("no C++ compiler found (set $CXX or install g++)")
+    source = SOURCE.read_bytes()
+    key = hashlib.sha256(source + " ".join([compiler, *FLAGS, sys.platform]).encode()).hexdigest()[:16]
+    target = _cache_dir() / f"cable-{key}.so"
+    if not target.exists():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        print(f"diffdlo: compiling the C++ simulator kernel with {compiler} (first use only, a few seconds)...",
+              file=sys.stderr, flush=True)
+        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+            out = Path(tmp) / target.name
+            result = subprocess.run([compiler, *FLAGS, str(SOURCE), "-o", str(out)], capture_output=True, text=True)
+            if result.returncode != 0:
+                raise RuntimeError(f"{compiler} failed to build {SOURCE}:\n{result.stderr[-2000:]}")
+            os.replace(out, target)     # atomic: concurrent processes never load a half-written file
+    lib = ctypes.CDLL(str(target))
+    ptr = ctypes.c_void_p
+    for suffix in ("f32", "f64"):
+        getattr(lib, f"diffdlo_forward_{suffix}").argtypes = [ptr] * 13
+        getattr(lib, f"diffdlo_backward_{suffix}").argtypes = [ptr] * 13
+        getattr(lib, f"diffdlo_hvp_{suffix}").argtypes = [ptr, ctypes.c_int64, ptr, ptr, ptr]
+        for name in ("forward", "backward", "hvp"):
+            getattr(lib, f"diffdlo_{name}_{suffix}").restype = None
+    return lib
+
+
+def _load() -> ctypes.CDLL | None:
+    global _lib, _error
+    if _lib is None and _error is None:
+        with _lock:
+            if _lib is None and _error is None:
+                try:
+                    _lib = _build()
+                except (RuntimeError, OSError) as exc:
+                    _error = str(exc)
+    return _lib
+
+
+def available() -> bool:
+    """True if the kernel is built (building it now if needed)."""
+    return _load() is not None
+
+
+def unavailable_reason() -> str | None:
+    _load()
+    return _error
+
+
+def _ptr(t: torch.Tensor | None) -> ctypes.c_void_p | None:
+    return None if t is None else ctypes.c_void_p(t.data_ptr())
+
+
+def _suffix(dtype: torch.dtype) -> str:
+    return {torch.float32: "f32", torch.float64: "f64"}[dtype]
+
+
+class Setup:
+    """Scalars and integers passed to the kernel for one call (fp and ip arrays, see cable.cpp)."""
+
+    def __init__(self, p, batch: int, fixed_steps: int = -1, threads: int | None = None,
+                 divergence_radius: float = 100.0):
+        self.fp = torch.tensor([p.rest_length, p.k_s, p.k_b, p.dt, 1.0 / p.node_mass,
+                                1.0 / (1.0 + p.dt * p.k_d / p.node_mass), p.max_speed, p.settle_threshold,
+                                divergence_radius], dtype=torch.float64)
+        self.ip = torch.tensor([batch, p.n_nodes, p.max_drag_steps, p.settle_check_every, p.settle_max_substeps,
+                                fixed_steps, threads or torch.get_num_threads()], dtype=torch.int64)
+
+
+def _contig(*tensors):
+    return [None if t is None else t.detach().contiguous() for t in tensors]
+
+
+def forward(setup: Setup, pos, vel, node, delta, speed, n_grasp):
+    """Run the kernel; returns (pos, vel, steps, settled, diverged)."""
+    lib = _load()
+    pos, vel, node, delta, speed, n_grasp = _contig(pos, vel, node, delta, speed, n_grasp)
+    out_pos, out_vel = torch.empty_like(pos), torch.empty_like(pos)
+    batch = pos.shape[0]
+    steps, settled, diverged = (torch.empty(batch, dtype=torch.int64) for _ in range(3))
+    getattr(lib, f"diffdlo_forward_{_suffix(pos.dtype)}")(
+        _ptr(setup.fp), _ptr(setup.ip), _ptr(pos), _ptr(vel), _ptr(node), _ptr(delta), _ptr(speed),
+        _ptr(n_grasp), _ptr(out_pos), _ptr(out_vel), _ptr(steps), _ptr(settled), _ptr(diverged))
+    return out_pos, out_vel, steps, settled.bool(), diverged.bool()
+
+
+def backward(setup: Setup, pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out):
+    """Adjoint of ``forward``: returns (grad_pos, grad_vel, grad_delta)."""
+    lib = _load()
+    pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out = _contig(
+        pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out)
+    grad_pos, grad_vel, grad_delta = torch.empty_like(pos), torch.empty_like(pos), torch.empty_like(delta)
+    getattr(lib, f"diffdlo_backward_{_suffix(pos.dtype)}")(
+        _ptr(setup.fp), _ptr(setup.ip), _ptr(pos), _ptr(vel), _ptr(node), _ptr(delta), _ptr(speed),
+        _ptr(n_grasp), _ptr(grad_pos_out), _ptr(grad_vel_out), _ptr(grad_pos), _ptr(grad_vel), _ptr(grad_delta))
+    return grad_pos, grad_vel, grad_delta
+
+
+def hvp(p, pos: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Hessian-vector product of the energy for one rope (N, 2); exposed for tests."""
+    lib = _load()
+    setup = Setup(p, 1)
+    pos, u = _contig(pos, u)
+    out = torch.empty_like(pos)
+    getattr(lib, f"diffdlo_hvp_{_suffix(pos.dtype)}")(_ptr(setup.fp), pos.shape[0], _ptr(pos), _ptr(u), _ptr(out))
+    return out
+
+
+class KernelRun(torch.autograd.Function):
+    """Differentiable kernel call: (pos, vel, delta) -> (pos, vel), plus non-differentiable run statistics."""
+
+    @staticmethod
+    def forward(ctx, setup, pos, vel, node, delta, speed, n_grasp):
+        out_pos, out_vel, steps, settled, diverged = forward(setup, pos, vel, node, delta, speed, n_grasp)
+        ctx.setup = setup
+        ctx.save_for_backward(pos, vel, node, delta, speed, n_grasp)
+        ctx.mark_non_differentiable(steps, settled, diverged)
+        return out_pos, out_vel, steps, settled, diverged
+
+    @staticmethod
+    def backward(ctx, grad_pos, grad_vel, *_):
+        pos, vel, node, delta, speed, n_grasp = ctx.saved_tensors
+        if grad_pos is None:
+            grad_pos = torch.zeros_like(pos)
+        g_pos, g_vel, g_delta = backward(ctx.setup, pos, vel, node, delta, speed, n_grasp, grad_pos, grad_vel)
+        return None, g_pos, g_vel, None, g_delta, None, None

@@ -1,0 +1,141 @@
+"""The fused C++ kernel against the pure-torch reference path: positions, run statistics and gradients."""
+import dataclasses
+
+import pytest
+import torch
+
+import diffdlo
+from diffdlo import kernel
+from conftest import crumpled
+
+pytestmark = pytest.mark.skipif(not kernel.available(), reason=f"kernel unavailable: {kernel.unavailable_reason()}")
+
+
+def pair(p, dtype=torch.float64):
+    return (diffdlo.Simulator(p, dtype=dtype, backend="torch"), diffdlo.Simulator(p, dtype=dtype, backend="kernel"))
+
+
+def actions(batch, seed=0, scale=0.1, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    node = torch.randint(0, 20, (batch,), generator=g)
+    delta = ((torch.rand(batch, 2, generator=g, dtype=torch.float64) * 2 - 1) * scale).to(dtype)
+    return node, delta
+
+
+@pytest.mark.parametrize("variant", ["default", "fast_path"])
+def test_kernel_move_equals_reference_with_gradients(params, variant):
+    # fast_path: a drag that would need more than max_drag_steps substeps goes faster than max_speed
+    p = params if variant == "default" else dataclasses.replace(params, max_drag_steps=300)
+    ref, fast = pair(p)
+    pos = crumpled(6, params, sigma=0.3, seed=1)
+    node, delta = actions(6, seed=2)
+    delta[0] = 0.0                                    # no drag at all: settle only
+    delta[1] = torch.tensor([0.3, -0.2], dtype=torch.float64)      # clipped to max_disp
+    assert fast.uses_kernel() and not ref.uses_kernel()
+    a, ia = ref.move(pos, node, delta, return_info=True)
+    b, ib = fast.move(pos, node, delta, return_info=True)
+    torch.testing.assert_close(b, a, rtol=0, atol=1e-12)
+    assert torch.equal(ia.drag_substeps, ib.drag_substeps) and torch.equal(ia.settle_substeps, ib.settle_substeps)
+    assert torch.equal(ia.settled, ib.settled)
+    target = diffdlo.target_shape("antidiagonal", p, dtype=torch.float64)
+    grads = []
+    for sim in (ref, fast):
+        x, d = pos.clone().requires_grad_(True), delta.clone().requires_grad_(True)
+        loss = diffdlo.shape_error(sim.move(x, node, d), target).sum() + sim.move(x, node, d)[:, 3].pow(2).sum()
+        grads.append(torch.autograd.grad(loss, (x, d)))
+    for g_ref, g_fast in zip(*grads):
+        assert g_ref.abs().max() > 1e-3
+        torch.testing.assert_close(g_fast, g_ref, rtol=1e-9, atol=1e-11)
+
+
+def test_kernel_hessian_vector_product_matches_autograd(params):
+    pos = crumpled(1, params, sigma=1.4, seed=3)[0] * 1.03
+    u = torch.randn(pos.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    x = pos.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(diffdlo.energy(x[None], params.rest_length, params.k_s, params.k_b).sum(), x,
+                                  create_graph=True)
+    (expected,) = torch.autograd.grad((grad * u).sum(), x)
+    torch.testing.assert_close(kernel.hvp(params, pos, u), expected, rtol=1e-9, atol=1e-10)
+
+
+def test_gradcheck_kernel_move(params):
+    p = dataclasses.replace(params, n_nodes=6, length=0.15, max_speed=1.0, settle_threshold=0.0,
+                            settle_check_every=10, settle_max_substeps=30)
+    sim = diffdlo.Simulator(p, dtype=torch.float64, backend="kernel")
+    pos = crumpled(2, p, sigma=0.8, seed=2).requires_grad_(True)
+    delta = torch.tensor([[0.0123, -0.0071], [-0.0043, 0.0091]], dtype=torch.float64, requires_grad=True)
+    node = torch.tensor([0, 3])
+    assert torch.autograd.gradcheck(lambda x, d: sim.move(x, node, d), (pos, delta), eps=1e-7, atol=1e-6,
+                                    rtol=1e-4)
+
+
+def test_kernel_free_evolution_equals_reference(params):
+    ref, fast = pair(params)
+    pos = crumpled(3, params, sigma=0.5, seed=5) * 1.02
+    vel = 0.01 * torch.randn(pos.shape, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    grads = []
+    for sim in (ref, fast):
+        x, v = pos.clone().requires_grad_(True), vel.clone().requires_grad_(True)
+        out_x, out_v = sim.integrate(x, v, 150)
+        grads.append((out_x.detach(), out_v.detach(), *torch.autograd.grad((out_x ** 2).sum() + out_v.sum(), (x, v))))
+    for a, b in zip(*grads):
+        torch.testing.assert_close(b, a, rtol=1e-9, atol=1e-11)
+    same_x, same_v = fast.integrate(pos, vel, 0)
+    assert torch.equal(same_x, pos) and torch.equal(same_v, vel)
+
+
+def test_float32_kernel_within_1mm_of_the_float64_reference(params):
+    """Issue 4's accuracy bar: after one move and after 1 s of free evolution."""
+    ref = diffdlo.Simulator(params, dtype=torch.float64, backend="torch")
+    fast = diffdlo.Simulator(params, dtype=torch.float32, backend="kernel")
+    pos = crumpled(4, params, sigma=0.3, seed=7)
+    node, delta = actions(4, seed=8)
+    moved = fast.move(pos.float(), node, delta.float()).double()
+    assert (moved - ref.move(pos, node, delta)).norm(dim=-1).max() < 1e-3
+    free = fast.integrate(pos.float(), None, 1000)[0].double()
+    assert (free - ref.integrate(pos, None, 1000)[0]).norm(dim=-1).max() < 1e-3
+
+
+def test_kernel_reports_divergence(params):
+    pos = crumpled(2, params)
+    pos[0, 5] = pos[0, 4]
+    with pytest.raises(diffdlo.SimulationError, match=r"batch members \[0\]"):
+        diffdlo.Simulator(params, dtype=torch.float64, backend="kernel").move(
+            pos, torch.tensor([0, 0]), torch.zeros(2, 2, dtype=torch.float64))
+
+
+def test_backend_selection_and_fallback(params, monkeypatch):
+    assert diffdlo.Simulator(params).uses_kernel()
+    assert not diffdlo.Simulator(params).uses_kernel(record_every=10)          # frames: torch path
+    assert not diffdlo.Simulator(dataclasses.replace(params, controller="pid")).uses_kernel()
+    with pytest.raises(ValueError, match="kinematic controller only"):
+        diffdlo.Simulator(dataclasses.replace(params, controller="pid"), backend="kernel")
+    with pytest.raises(ValueError, match="backend must be one of"):
+        diffdlo.Simulator(params, backend="fast")
+    monkeypatch.setattr(kernel, "_lib", None)
+    monkeypatch.setattr(kernel, "_error", "no C++ compiler found (set $CXX or install g++)")
+    with pytest.raises(RuntimeError, match="backend 'kernel' is unavailable: no C\\+\\+ compiler"):
+        diffdlo.Simulator(params, backend="kernel")
+    sim = diffdlo.Simulator(params)                   # auto falls back to the torch path
+    assert not sim.uses_kernel()
+    pos = sim.random_shape(1, torch.Generator().manual_seed(0))
+    assert sim.move(pos, torch.tensor([0]), torch.tensor([[0.01, 0.0]])).shape == pos.shape
+
+
+def test_gradient_of_a_move_sequence_equals_plain_autograd(params):
+    """Issue 4: the memory-bounded gradient of several moves equals autograd through the eager loop."""
+    ref, fast = pair(params)
+    pos = crumpled(2, params, sigma=0.3, seed=9)
+    nodes = [torch.tensor([0, 19]), torch.tensor([7, 3]), torch.tensor([19, 10])]
+    deltas = torch.tensor([[[0.05, 0.0], [0.0, -0.06]], [[-0.02, 0.04], [0.03, 0.03]], [[0.0, 0.08], [-0.05, 0.01]]],
+                          dtype=torch.float64)
+    target = diffdlo.target_shape("vertical", params, dtype=torch.float64)
+    grads = []
+    for sim in (ref, fast):
+        x0, d = pos.clone().requires_grad_(True), deltas.clone().requires_grad_(True)
+        x = x0
+        for m in range(3):
+            x = sim.move(x, nodes[m], d[m])
+        grads.append(torch.autograd.grad(diffdlo.shape_error(x, target).sum(), (x0, d)))
+    for g_ref, g_fast in zip(*grads):
+        torch.testing.assert_close(g_fast, g_ref, rtol=1e-8, atol=1e-10)
