@@ -5,6 +5,7 @@ from .rewards import (REWARDS, abs_diff, end_to_end_angle, is_success, orientati
                       reward, reward_abs_diff, reward_delta_gain, reward_position_orientation, shape_error)
 from .shapes import TARGET_NAMES, TargetError, random_shape, target_shape
 from .simulator import MoveInfo, SimulationError, Simulator
+from . import envs  # registers DiffDLO/ShapeControl-v0
 
 __version__ = "0.1.0"
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cable.cpp"
-FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-fopenmp"]
+FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-pthread"]
 
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None

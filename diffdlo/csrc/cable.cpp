@@ -5,7 +5,9 @@
 //   substep  : diffdlo/integrate.py semi_implicit_step (implicit damping)
 //   grasp    : diffdlo/control.py reference (straight path at constant speed; node overwritten while dragging)
 //   settle   : Simulator.move (speed checked every check_every substeps after release, capped)
-// Each rope is independent, so ropes run in parallel (OpenMP) and each stops at its own substep.
+// Each rope is independent, so ropes run in parallel (a few std::threads taking ropes from an atomic counter;
+// not OpenMP, whose spinning idle threads would fight PyTorch's own OpenMP runtime for the cores) and each rope
+// stops at its own substep.
 // The backward recomputes one rope's trajectory inside its own thread, then runs the adjoint with an analytic
 // Hessian-vector product of the energy: memory is O(threads x one trajectory), whatever B or the move count.
 #include <algorithm>
@@ -13,11 +15,28 @@
 #include <cstdint>
 #include <memory>
 #include <vector>
-#ifdef _OPENMP
-#include <omp.h>
-#endif
+#include <atomic>
+#include <thread>
 
 namespace {
+
+// Run body(b) for b in [0, B) on up to `threads` threads (inline when one suffices).
+template <typename F>
+void parallel_for(int64_t B, int64_t threads, F body) {
+  const int64_t workers = std::max<int64_t>(1, std::min(threads, B));
+  if (workers == 1) {
+    for (int64_t b = 0; b < B; ++b) body(b);
+    return;
+  }
+  std::atomic<int64_t> next{0};
+  auto work = [&]() {
+    for (int64_t b = next.fetch_add(1); b < B; b = next.fetch_add(1)) body(b);
+  };
+  std::vector<std::thread> pool;
+  for (int64_t t = 1; t < workers; ++t) pool.emplace_back(work);
+  work();
+  for (auto& t : pool) t.join();
+}
 
 struct Scalars {      // fp[] from Python, in this order
   double l0, ks, kb, h, inv_m, damp, vmax, threshold, radius;
@@ -211,8 +230,7 @@ void forward(const double* fp, const int64_t* ip, const T* pos, const T* vel, co
   const Scalars s{fp[0], fp[1], fp[2], fp[3], fp[4], fp[5], fp[6], fp[7], fp[8]};
   const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6]};
   const int64_t n = in.n;
-#pragma omp parallel for schedule(dynamic, 1) num_threads(in.threads) if (in.B > 1)
-  for (int64_t b = 0; b < in.B; ++b) {
+  parallel_for(in.B, in.threads, [&](int64_t b) {
     Work<T> w(n);
     T* x = out_pos + 2 * n * b;
     T* v = out_vel + 2 * n * b;
@@ -221,7 +239,7 @@ void forward(const double* fp, const int64_t* ip, const T* pos, const T* vel, co
     else std::fill(v, v + 2 * n, T(0));
     out_steps[b] = run_rope(s, in, x, v, node[b], delta + 2 * b, speed[b], n_grasp[b], static_cast<T*>(nullptr),
                             static_cast<T*>(nullptr), out_settled + b, out_diverged + b, w);
-  }
+  });
 }
 
 template <typename T>
@@ -232,8 +250,7 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
   const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6]};
   const int64_t n = in.n;
   const int64_t max_steps = in.fixed_steps >= 0 ? in.fixed_steps : in.max_drag + in.max_settle + 1;
-#pragma omp parallel for schedule(dynamic, 1) num_threads(in.threads) if (in.B > 1)
-  for (int64_t b = 0; b < in.B; ++b) {
+  parallel_for(in.B, in.threads, [&](int64_t b) {
     Work<T> w(n);
     // uninitialised: every slot read is written by the recomputation first
     std::unique_ptr<T[]> traj(new T[2 * n * (max_steps + 2)]), betas(new T[(n - 2) * (max_steps + 1)]);
@@ -296,7 +313,7 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
     }
     grad_delta[2 * b] = gd[0];
     grad_delta[2 * b + 1] = gd[1];
-  }
+  });
 }
 
 }  // namespace
