@@ -36,14 +36,17 @@ def path_substeps(distance: torch.Tensor, p: CableParams) -> torch.Tensor:
 
 def reference(start: torch.Tensor, delta: torch.Tensor, speed: torch.Tensor, k: int,
               dt: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Reference position and velocity (B, 2) of the grasped node at substep k >= 1 of the drag."""
-    distance = delta.norm(dim=-1)
-    safe = distance.clamp_min(1e-12)
-    raw = (k * dt) * speed / safe
-    frac = raw.clamp(max=1.0)
-    moving = (raw <= 1.0).to(delta.dtype)
+    """Reference position and velocity (B, 2) of the grasped node at substep k >= 1 of the drag.
+
+    The velocity is the path's displacement over the substep divided by dt, so it is continuous in delta: on the
+    last substep it is the remaining distance / dt (a release velocity that jumped between 0 and max_speed as the
+    path length crossed a whole number of substeps would make the outcome discontinuous in the action).
+    """
+    safe = delta.norm(dim=-1).clamp_min(1e-12)
+    frac = ((k * dt) * speed / safe).clamp(max=1.0)
+    frac_prev = (((k - 1) * dt) * speed / safe).clamp(max=1.0)
     position = start + frac.unsqueeze(-1) * delta
-    velocity = (moving * speed / safe).unsqueeze(-1) * delta
+    velocity = ((frac - frac_prev) / dt).unsqueeze(-1) * delta
     return position, velocity
 
 

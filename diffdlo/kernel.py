@@ -21,7 +21,9 @@ from pathlib import Path
 import torch
 
 SOURCE = Path(__file__).resolve().parent / "csrc" / "cable.cpp"
-FLAGS = ["-O3", "-std=c++17", "-fPIC", "-shared", "-pthread"]
+# -march=native: the lane-group loops vectorize across ropes with the widest vectors this CPU has (the cache key
+# includes the CPU, so a cached build never runs on another model); -fno-math-errno lets sqrt vectorize.
+FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-std=c++17", "-fPIC", "-shared", "-pthread"]
 
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
@@ -39,12 +41,23 @@ def _compiler() -> str | None:
     return None
 
 
+def _cpu_id() -> str:
+    """The CPU model and feature flags (for -march=native builds), or the platform where /proc is absent."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        import platform
+        return platform.processor() or platform.machine()
+    fields = [line for line in info.splitlines() if line.startswith(("model name", "flags"))][:2]
+    return "\n".join(fields)
+
+
 def _build() -> ctypes.CDLL:
     compiler = _compiler()
     if compiler is None:
         raise RuntimeError("no C++ compiler found (set $CXX or install g++)")
     source = SOURCE.read_bytes()
-    key = hashlib.sha256(source + " ".join([compiler, *FLAGS, sys.platform]).encode()).hexdigest()[:16]
+    key = hashlib.sha256(source + " ".join([compiler, *FLAGS, sys.platform, _cpu_id()]).encode()).hexdigest()[:16]
     target = _cache_dir() / f"cable-{key}.so"
     if not target.exists():
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -101,12 +114,12 @@ class Setup:
     """Scalars and integers passed to the kernel for one call (fp and ip arrays, see cable.cpp)."""
 
     def __init__(self, p, batch: int, fixed_steps: int = -1, threads: int | None = None,
-                 divergence_radius: float = 100.0):
+                 divergence_radius: float = 100.0, lane_groups: bool = True):
         self.fp = torch.tensor([p.rest_length, p.k_s, p.k_b, p.dt, 1.0 / p.node_mass,
                                 1.0 / (1.0 + p.dt * p.k_d / p.node_mass), p.max_speed, p.settle_threshold,
                                 divergence_radius], dtype=torch.float64)
         self.ip = torch.tensor([batch, p.n_nodes, p.max_drag_steps, p.settle_check_every, p.settle_max_substeps,
-                                fixed_steps, threads or torch.get_num_threads()], dtype=torch.int64)
+                                fixed_steps, threads or torch.get_num_threads(), int(lane_groups)], dtype=torch.int64)
 
 
 def _contig(*tensors):

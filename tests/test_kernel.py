@@ -27,8 +27,10 @@ def test_kernel_move_equals_reference_with_gradients(params, variant):
     # fast_path: a drag that would need more than max_drag_steps substeps goes faster than max_speed
     p = params if variant == "default" else dataclasses.replace(params, max_drag_steps=300)
     ref, fast = pair(p)
-    pos = crumpled(6, params, sigma=0.3, seed=1)
-    node, delta = actions(6, seed=2)
+    # 11 ropes: one lane group of 8 (vectorized across ropes) and 3 on the per-rope path
+    pos = crumpled(11, params, sigma=0.3, seed=1)
+    node, delta = actions(11, seed=2)
+    delta[9] = 0.0
     delta[0] = 0.0                                    # no drag at all: settle only
     delta[1] = torch.tensor([0.3, -0.2], dtype=torch.float64)      # clipped to max_disp
     assert fast.uses_kernel() and not ref.uses_kernel()
@@ -58,20 +60,22 @@ def test_kernel_hessian_vector_product_matches_autograd(params):
     torch.testing.assert_close(kernel.hvp(params, pos, u), expected, rtol=1e-9, atol=1e-10)
 
 
-def test_gradcheck_kernel_move(params):
+@pytest.mark.parametrize("batch", [2, 9])          # 9: a lane group of 8 and one rope on the per-rope path
+def test_gradcheck_kernel_move(params, batch):
     p = dataclasses.replace(params, n_nodes=6, length=0.15, max_speed=1.0, settle_threshold=0.0,
                             settle_check_every=10, settle_max_substeps=30)
     sim = diffdlo.Simulator(p, dtype=torch.float64, backend="kernel")
-    pos = crumpled(2, p, sigma=0.8, seed=2).requires_grad_(True)
-    delta = torch.tensor([[0.0123, -0.0071], [-0.0043, 0.0091]], dtype=torch.float64, requires_grad=True)
-    node = torch.tensor([0, 3])
+    pos = crumpled(batch, p, sigma=0.8, seed=2).requires_grad_(True)
+    g = torch.Generator().manual_seed(3)
+    delta = ((torch.rand(batch, 2, generator=g, dtype=torch.float64) - 0.5) * 0.03).requires_grad_(True)
+    node = torch.randint(0, 6, (batch,), generator=g)
     assert torch.autograd.gradcheck(lambda x, d: sim.move(x, node, d), (pos, delta), eps=1e-7, atol=1e-6,
                                     rtol=1e-4)
 
 
 def test_kernel_free_evolution_equals_reference(params):
     ref, fast = pair(params)
-    pos = crumpled(3, params, sigma=0.5, seed=5) * 1.02
+    pos = crumpled(10, params, sigma=0.5, seed=5) * 1.02
     vel = 0.01 * torch.randn(pos.shape, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
     grads = []
     for sim in (ref, fast):
@@ -88,20 +92,21 @@ def test_float32_kernel_within_1mm_of_the_float64_reference(params):
     """Issue 4's accuracy bar: after one move and after 1 s of free evolution."""
     ref = diffdlo.Simulator(params, dtype=torch.float64, backend="torch")
     fast = diffdlo.Simulator(params, dtype=torch.float32, backend="kernel")
-    pos = crumpled(4, params, sigma=0.3, seed=7)
-    node, delta = actions(4, seed=8)
+    pos = crumpled(12, params, sigma=0.3, seed=7)
+    node, delta = actions(12, seed=8)
     moved = fast.move(pos.float(), node, delta.float()).double()
     assert (moved - ref.move(pos, node, delta)).norm(dim=-1).max() < 1e-3
     free = fast.integrate(pos.float(), None, 1000)[0].double()
     assert (free - ref.integrate(pos, None, 1000)[0]).norm(dim=-1).max() < 1e-3
 
 
-def test_kernel_reports_divergence(params):
-    pos = crumpled(2, params)
-    pos[0, 5] = pos[0, 4]
-    with pytest.raises(diffdlo.SimulationError, match=r"batch members \[0\]"):
+@pytest.mark.parametrize("batch,bad", [(2, 0), (10, 3), (10, 9)])
+def test_kernel_reports_divergence(params, batch, bad):
+    pos = crumpled(batch, params)
+    pos[bad, 5] = pos[bad, 4]
+    with pytest.raises(diffdlo.SimulationError, match=rf"batch members \[{bad}\]"):
         diffdlo.Simulator(params, dtype=torch.float64, backend="kernel").move(
-            pos, torch.tensor([0, 0]), torch.zeros(2, 2, dtype=torch.float64))
+            pos, torch.zeros(batch, dtype=torch.int64), torch.zeros(batch, 2, dtype=torch.float64))
 
 
 def test_backend_selection_and_fallback(params, monkeypatch):
@@ -125,10 +130,10 @@ def test_backend_selection_and_fallback(params, monkeypatch):
 def test_gradient_of_a_move_sequence_equals_plain_autograd(params):
     """Issue 4: the memory-bounded gradient of several moves equals autograd through the eager loop."""
     ref, fast = pair(params)
-    pos = crumpled(2, params, sigma=0.3, seed=9)
-    nodes = [torch.tensor([0, 19]), torch.tensor([7, 3]), torch.tensor([19, 10])]
-    deltas = torch.tensor([[[0.05, 0.0], [0.0, -0.06]], [[-0.02, 0.04], [0.03, 0.03]], [[0.0, 0.08], [-0.05, 0.01]]],
-                          dtype=torch.float64)
+    pos = crumpled(9, params, sigma=0.3, seed=9)
+    g = torch.Generator().manual_seed(10)
+    nodes = [torch.randint(0, 20, (9,), generator=g) for _ in range(3)]
+    deltas = (torch.rand(3, 9, 2, generator=g, dtype=torch.float64) * 2 - 1) * 0.08
     target = diffdlo.target_shape("vertical", params, dtype=torch.float64)
     grads = []
     for sim in (ref, fast):

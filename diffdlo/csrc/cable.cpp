@@ -42,7 +42,7 @@ struct Scalars {      // fp[] from Python, in this order
   double l0, ks, kb, h, inv_m, damp, vmax, threshold, radius;
 };
 struct Ints {         // ip[] from Python, in this order
-  int64_t B, n, max_drag, check_every, max_settle, fixed_steps, threads;
+  int64_t B, n, max_drag, check_every, max_settle, fixed_steps, threads, use_groups;
 };
 
 template <typename T>
@@ -153,19 +153,42 @@ inline void substep(const Scalars& s, int64_t n, T* x, T* v, Work<T>& w) {
   }
 }
 
-// Reference position/velocity of the grasped node at drag substep k (control.reference).
+// Reference position/velocity of the grasped node at drag substep k (control.reference): the velocity is the
+// path's displacement over the substep / h, continuous in the drag d.
 template <typename T>
-inline void reference(const T* start, const T* d, T speed, int64_t k, T h, T* ref, T* refv, T* raw_out) {
-  const T dist = std::sqrt(d[0] * d[0] + d[1] * d[1]);
-  const T safe = std::max(dist, T(1e-12));
-  const T raw = T(k) * h * speed / safe;
-  const T frac = std::min(raw, T(1));
-  const T moving = raw <= T(1) ? T(1) : T(0);
+inline T path_fraction(const T* d, T speed, int64_t k, T h) {
+  const T safe = std::max(std::sqrt(d[0] * d[0] + d[1] * d[1]), T(1e-12));
+  return std::min(T(k) * h * speed / safe, T(1));
+}
+
+template <typename T>
+inline void reference(const T* start, const T* d, T speed, int64_t k, T h, T* ref, T* refv) {
+  const T frac = path_fraction(d, speed, k, h), prev = path_fraction(d, speed, k - 1, h);
   for (int c = 0; c < 2; ++c) {
     ref[c] = start[c] + frac * d[c];
-    refv[c] = moving * speed / safe * d[c];
+    refv[c] = (frac - prev) / h * d[c];
   }
-  *raw_out = raw;
+}
+
+// Adjoint of reference(): a, c are the adjoints of ref and refv; accumulates into gd (drag) and gstart.
+// frac_j = min(1, j h s / |d|) with s = vmax (slow: d frac_j / d d = -frac_j u / |d| while unclamped) or
+// s = |d| / (max_drag h) (fast: frac_j = j / max_drag, constant).
+template <typename T>
+inline void reference_adjoint(const T* d, T speed, int64_t k, T h, T vmax, const T* a, const T* c, T* gd,
+                              T* gstart) {
+  const T safe = std::max(std::sqrt(d[0] * d[0] + d[1] * d[1]), T(1e-12));
+  const T ux = d[0] / safe, uy = d[1] / safe;
+  const bool slow = !(speed > vmax);
+  const T raw = T(k) * h * speed / safe, raw_prev = T(k - 1) * h * speed / safe;
+  const T frac = std::min(raw, T(1)), frac_prev = std::min(raw_prev, T(1));
+  const T dfrac = slow && raw <= T(1) ? -raw / safe : T(0);             // d frac / d d = dfrac * u
+  const T dprev = slow && raw_prev <= T(1) ? -raw_prev / safe : T(0);
+  const T adot = a[0] * d[0] + a[1] * d[1], cdot = c[0] * d[0] + c[1] * d[1];
+  for (int i = 0; i < 2; ++i) {
+    const T u = i == 0 ? ux : uy;
+    gd[i] += frac * a[i] + adot * dfrac * u + ((frac - frac_prev) * c[i] + cdot * (dfrac - dprev) * u) / h;
+    gstart[i] += a[i];
+  }
 }
 
 // Run one rope. Returns the number of substeps done; if traj != nullptr stores x_0..x_K (n*2 each).
@@ -175,7 +198,7 @@ int64_t run_rope(const Scalars& s, const Ints& in, T* x, T* v, int64_t g, const 
   const int64_t n = in.n;
   const T h = T(s.h);
   T start[2] = {x[2 * g], x[2 * g + 1]};
-  T ref[2], refv[2], raw;
+  T ref[2], refv[2];
   *settled = 0;
   *diverged = 0;
   if (traj) std::copy(x, x + 2 * n, traj);
@@ -188,7 +211,7 @@ int64_t run_rope(const Scalars& s, const Ints& in, T* x, T* v, int64_t g, const 
     substep(s, n, x, v, w);
     if (betas) std::copy(w.beta.begin(), w.beta.end(), betas + (n - 2) * (k - 1));   // beta(x_{k-1})
     if (k <= n_grasp) {
-      reference(start, d, speed, k, h, ref, refv, &raw);
+      reference(start, d, speed, k, h, ref, refv);
       x[2 * g] = ref[0];
       x[2 * g + 1] = ref[1];
       v[2 * g] = refv[0];
@@ -223,14 +246,345 @@ int64_t run_rope(const Scalars& s, const Ints& in, T* x, T* v, int64_t g, const 
   }
 }
 
+
+// ------------------------------------------------------------------------------------------------------------
+// Lane groups: W ropes in lockstep, batch index innermost (array[(row * W) + lane]), so the compiler vectorizes
+// every per-node loop across ropes. Same scheme as the per-rope path above; a lane whose rope has finished is
+// frozen by selects. Used for full groups of W ropes; the remaining ropes take the per-rope path.
+constexpr int W = 8;
+
+// Branch-free atan2 (Cephes atan rational approximation; within ~1 ulp of std::atan2, same signed zeros).
+template <typename T>
+inline T fast_atan2(T y, T x) {
+  const T ax = std::abs(x), ay = std::abs(y);
+  const bool swap = ay > ax;
+  const T num = swap ? ax : ay, den = swap ? ay : ax;
+  T t = den > T(0) ? num / den : T(0);
+  const bool big = t > T(0.66);
+  const T base = big ? T(0.78539816339744830962) : T(0);
+  const T more = big ? T(0.5 * 6.123233995736765886130E-17) : T(0);
+  t = big ? (t - T(1)) / (t + T(1)) : t;
+  const T z = t * t;
+  const T p = (((T(-8.750608600031904122785E-1) * z + T(-1.615753718733365076637E1)) * z
+               + T(-7.500855792314704667340E1)) * z + T(-1.228866684490136173410E2)) * z
+               + T(-6.485021904942025371773E1);
+  const T q = ((((z + T(2.485846490142306297962E1)) * z + T(1.650270098316988542046E2)) * z
+               + T(4.328810604912902668951E2)) * z + T(4.853903996359136964868E2)) * z
+               + T(1.945506571482613964425E2);
+  T r = base + (t * (z * p / q) + t + more);
+  r = swap ? T(1.57079632679489661923) - r + T(6.123233995736765886130E-17) : r;
+  r = std::signbit(x) ? T(3.14159265358979323846) - r + T(1.2246467991473532e-16) : r;
+  return std::copysign(r, y);
+}
+
+// Scratch of one lane group. Border rows are zero padding, so the inner loops need no conditionals:
+// bp (n rows): bp[0] = bp[n-1] = 0, bp[j + 1] = turning angle at interior node j + 1; link k uses bp[k], bp[k+1].
+// Gp (2 (n + 1) rows): Gp rows of link k at k + 1, zero rows for the missing links -1 and n - 1.
+template <typename T>
+struct GroupWork {
+  std::vector<T> e, len2, bp, Gp, F, we, dbp;
+  explicit GroupWork(int64_t n) : e(2 * (n - 1) * W), len2((n - 1) * W), bp(n * W, T(0)), Gp(2 * (n + 1) * W, T(0)),
+                                  F(2 * n * W), we(2 * (n - 1) * W), dbp(n * W, T(0)) {}
+};
+
+template <typename T>
+inline void group_links(int64_t n, const T* __restrict x, T* __restrict e, T* __restrict len2) {
+  for (int64_t k = 0; k < n - 1; ++k) {
+    const T* __restrict x0 = x + 2 * k * W;
+    T* __restrict ek = e + 2 * k * W;
+    for (int l = 0; l < W; ++l) {
+      const T ex = x0[2 * W + l] - x0[l];
+      const T ey = x0[3 * W + l] - x0[W + l];
+      ek[l] = ex;
+      ek[W + l] = ey;
+      len2[k * W + l] = ex * ex + ey * ey;
+    }
+  }
+}
+
+// dE/de of every link into Gp (padded) given links, squared lengths and padded angles bp; F = scatter.
+template <typename T>
+inline void group_link_grad(const Scalars& s, int64_t n, const T* __restrict e, const T* __restrict len2,
+                            const T* __restrict bp, T* __restrict Gp) {
+  const T l0 = T(s.l0), ks = T(s.ks), kb = T(s.kb);
+  for (int64_t k = 0; k < n - 1; ++k) {
+    const T* __restrict ek = e + 2 * k * W;
+    T* __restrict gk = Gp + 2 * (k + 1) * W;
+    for (int l = 0; l < W; ++l) {
+      const T l2 = len2[k * W + l];
+      const T a = ks * (T(1) - l0 / std::sqrt(l2));
+      const T b = kb * (bp[k * W + l] - bp[(k + 1) * W + l]) / l2;
+      const T ex = ek[l], ey = ek[W + l];
+      gk[l] = a * ex - b * ey;
+      gk[W + l] = a * ey + b * ex;
+    }
+  }
+}
+
+template <typename T>
+inline void group_forces(const Scalars& s, int64_t n, const T* __restrict x, GroupWork<T>& w) {
+  T* __restrict e = w.e.data();
+  T* __restrict len2 = w.len2.data();
+  T* __restrict bp = w.bp.data();
+  T* __restrict Gp = w.Gp.data();
+  T* __restrict F = w.F.data();
+  group_links(n, x, e, len2);
+  for (int64_t j = 0; j < n - 2; ++j) {
+    const T* __restrict a = e + 2 * j * W;
+    T* __restrict bj = bp + (j + 1) * W;
+    for (int l = 0; l < W; ++l) {
+      const T ax = a[l], ay = a[W + l], bx = a[2 * W + l], by = a[3 * W + l];
+      bj[l] = fast_atan2(ax * by - ay * bx, ax * bx + ay * by);
+    }
+  }
+  group_link_grad(s, n, e, len2, bp, Gp);
+  for (int64_t i = 0; i < 2 * n * W; ++i) F[i] = Gp[i + 2 * W] - Gp[i];     // F_j = G_j - G_{j-1}
+}
+
+// (H u) at x with stored padded turning angles bp (n rows of W), into out.
+template <typename T>
+inline void group_hvp(const Scalars& s, int64_t n, const T* __restrict x, const T* __restrict bp,
+                      const T* __restrict u, T* __restrict out, GroupWork<T>& w) {
+  T* __restrict e = w.e.data();
+  T* __restrict len2 = w.len2.data();
+  T* __restrict we = w.we.data();
+  T* __restrict dbp = w.dbp.data();
+  T* __restrict Gp = w.Gp.data();
+  group_links(n, x, e, len2);
+  group_links(n, u, we, w.F.data());                     // F is free scratch here (perturbation lengths unused)
+  for (int64_t j = 0; j < n - 2; ++j) {
+    const T* __restrict a = e + 2 * j * W;
+    const T* __restrict ua = we + 2 * j * W;
+    T* __restrict dj = dbp + (j + 1) * W;
+    for (int l = 0; l < W; ++l) {
+      const T q1 = (-a[3 * W + l] * ua[2 * W + l] + a[2 * W + l] * ua[3 * W + l]) / len2[(j + 1) * W + l];
+      const T q0 = (-a[W + l] * ua[l] + a[l] * ua[W + l]) / len2[j * W + l];
+      dj[l] = q1 - q0;
+    }
+  }
+  const T l0 = T(s.l0), ks = T(s.ks), kb = T(s.kb);
+  for (int64_t k = 0; k < n - 1; ++k) {
+    const T* __restrict ek = e + 2 * k * W;
+    const T* __restrict uk = we + 2 * k * W;
+    T* __restrict gk = Gp + 2 * (k + 1) * W;
+    for (int l = 0; l < W; ++l) {
+      const T ex = ek[l], ey = ek[W + l], ux = uk[l], uy = uk[W + l];
+      const T l2 = len2[k * W + l], len = std::sqrt(l2);
+      const T edotu = ex * ux + ey * uy;
+      const T a = ks * (T(1) - l0 / len), c = ks * l0 / (len * l2);
+      const T db = dbp[k * W + l] - dbp[(k + 1) * W + l], bb = bp[k * W + l] - bp[(k + 1) * W + l];
+      const T inv = T(1) / l2, two = T(2) * edotu * inv * inv;
+      const T qx = -ey * inv, qy = ex * inv;
+      const T dqx = -uy * inv + two * ey, dqy = ux * inv - two * ex;
+      gk[l] = a * ux + c * edotu * ex + kb * (db * qx + bb * dqx);
+      gk[W + l] = a * uy + c * edotu * ey + kb * (db * qy + bb * dqy);
+    }
+  }
+  for (int64_t i = 0; i < 2 * n * W; ++i) out[i] = Gp[i] - Gp[i + 2 * W];   // (H u)_j = dG_{j-1} - dG_j
+}
+
+struct Lane {          // per-lane action and run record
+  int64_t g, n_grasp, steps, settled, diverged;
+  bool active;
+};
+
+// Run W ropes in lockstep; x, v in group layout. Returns the substeps of the longest lane.
+template <typename T>
+int64_t run_group(const Scalars& s, const Ints& in, T* x, T* v, Lane* lane, const T* d, const T* speed, T* traj,
+                  T* betas, GroupWork<T>& w) {
+  const int64_t n = in.n, rows = 2 * n;
+  const T h = T(s.h), hm = T(s.h * s.inv_m), damp = T(s.damp);
+  T start[W][2], act[W];
+  for (int l = 0; l < W; ++l) {
+    start[l][0] = x[(2 * lane[l].g) * W + l];
+    start[l][1] = x[(2 * lane[l].g + 1) * W + l];
+    lane[l].active = true;
+    lane[l].settled = lane[l].diverged = 0;
+    act[l] = T(1);
+  }
+  if (traj) std::copy(x, x + rows * W, traj);
+  auto bad = [&](int l) {
+    for (int64_t i = 0; i < rows; ++i) {
+      const T xi = x[i * W + l];
+      if (!std::isfinite(xi) || std::abs(xi) > T(s.radius)) return true;
+    }
+    return false;
+  };
+  for (int64_t k = 1;; ++k) {
+    group_forces(s, n, x, w);
+    const T* __restrict F = w.F.data();
+    for (int64_t i = 0; i < rows; ++i) {
+      T* __restrict xi = x + i * W;
+      T* __restrict vi = v + i * W;
+      for (int l = 0; l < W; ++l) {
+        const T vo = vi[l], xo = xi[l];
+        const T vn = (vo + hm * F[i * W + l]) * damp;
+        const T xn = xo + h * vn;
+        vi[l] = act[l] != T(0) ? vn : vo;
+        xi[l] = act[l] != T(0) ? xn : xo;
+      }
+    }
+    if (betas) std::copy(w.bp.begin(), w.bp.end(), betas + n * W * (k - 1));
+    for (int l = 0; l < W; ++l) {
+      if (lane[l].active && k <= lane[l].n_grasp) {
+        T ref[2], refv[2];
+        reference(start[l], d + 2 * l, speed[l], k, h, ref, refv);
+        const int64_t g = lane[l].g;
+        x[(2 * g) * W + l] = ref[0];
+        x[(2 * g + 1) * W + l] = ref[1];
+        v[(2 * g) * W + l] = refv[0];
+        v[(2 * g + 1) * W + l] = refv[1];
+      }
+    }
+    if (traj) std::copy(x, x + rows * W, traj + rows * W * k);
+    bool any = false;
+    for (int l = 0; l < W; ++l) {
+      if (!lane[l].active) continue;
+      bool stop = false;
+      if (in.fixed_steps >= 0) {
+        if (k >= in.fixed_steps) {
+          lane[l].diverged = bad(l);
+          stop = true;
+        }
+      } else {
+        const int64_t since = k - lane[l].n_grasp;
+        const bool check = since > 0 && since % in.check_every == 0;
+        const bool capped = since >= in.max_settle;
+        if (check || capped) {
+          if (bad(l)) {
+            lane[l].diverged = 1;
+            stop = true;
+          } else if (check) {
+            T vmax2 = 0;
+            for (int64_t j = 0; j < n; ++j) {
+              const T vx = v[(2 * j) * W + l], vy = v[(2 * j + 1) * W + l];
+              vmax2 = std::max(vmax2, vx * vx + vy * vy);
+            }
+            if (std::sqrt(vmax2) < T(s.threshold)) {
+              lane[l].settled = 1;
+              stop = true;
+            }
+          }
+          stop = stop || capped;
+        }
+      }
+      if (stop) {
+        lane[l].active = false;
+        lane[l].steps = k;
+        act[l] = T(0);
+      } else {
+        any = true;
+      }
+    }
+    if (!any) return k;
+  }
+}
+
+template <typename T>
+void to_group(int64_t n, const T* src, int64_t b0, T* dst) {     // (W, n, 2) rows of the batch -> group layout
+  for (int l = 0; l < W; ++l)
+    for (int64_t i = 0; i < 2 * n; ++i) dst[i * W + l] = src[(b0 + l) * 2 * n + i];
+}
+
+template <typename T>
+void from_group(int64_t n, const T* src, int64_t b0, T* dst) {
+  for (int l = 0; l < W; ++l)
+    for (int64_t i = 0; i < 2 * n; ++i) dst[(b0 + l) * 2 * n + i] = src[i * W + l];
+}
+
+template <typename T>
+void forward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, const T* vel, const int64_t* node,
+                   const T* delta, const T* speed, const int64_t* n_grasp, T* out_pos, T* out_vel,
+                   int64_t* out_steps, int64_t* out_settled, int64_t* out_diverged) {
+  const int64_t n = in.n;
+  GroupWork<T> w(n);
+  std::vector<T> x(2 * n * W), v(2 * n * W, T(0));
+  to_group(n, pos, b0, x.data());
+  if (vel) to_group(n, vel, b0, v.data());
+  Lane lane[W];
+  for (int l = 0; l < W; ++l) lane[l] = Lane{node[b0 + l], n_grasp[b0 + l], 0, 0, 0, true};
+  run_group(s, in, x.data(), v.data(), lane, delta + 2 * b0, speed + b0, static_cast<T*>(nullptr),
+            static_cast<T*>(nullptr), w);
+  from_group(n, x.data(), b0, out_pos);
+  from_group(n, v.data(), b0, out_vel);
+  for (int l = 0; l < W; ++l) {
+    out_steps[b0 + l] = lane[l].steps;
+    out_settled[b0 + l] = lane[l].settled;
+    out_diverged[b0 + l] = lane[l].diverged;
+  }
+}
+
+template <typename T>
+void backward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, const T* vel, const int64_t* node,
+                    const T* delta, const T* speed, const int64_t* n_grasp, const T* grad_out_pos,
+                    const T* grad_out_vel, T* grad_pos, T* grad_vel, T* grad_delta) {
+  const int64_t n = in.n, rows = 2 * n;
+  const int64_t max_steps = in.fixed_steps >= 0 ? in.fixed_steps : in.max_drag + in.max_settle + 1;
+  GroupWork<T> w(n);
+  std::unique_ptr<T[]> traj(new T[rows * W * (max_steps + 2)]), betas(new T[n * W * (max_steps + 1)]);
+  std::vector<T> x(rows * W), v(rows * W, T(0)), gx(rows * W), gv(rows * W, T(0)), u(rows * W), hu(rows * W);
+  to_group(n, pos, b0, x.data());
+  if (vel) to_group(n, vel, b0, v.data());
+  Lane lane[W];
+  for (int l = 0; l < W; ++l) lane[l] = Lane{node[b0 + l], n_grasp[b0 + l], 0, 0, 0, true};
+  const T* d = delta + 2 * b0;
+  const T* sp = speed + b0;
+  const int64_t K = run_group(s, in, x.data(), v.data(), lane, d, sp, traj.get(), betas.get(), w);
+  to_group(n, grad_out_pos, b0, gx.data());
+  if (grad_out_vel) to_group(n, grad_out_vel, b0, gv.data());
+  const T h = T(s.h), vmax = T(s.vmax), damp = T(s.damp);
+  const T coef = T(s.h * s.inv_m * s.damp);
+  T gd[W][2] = {}, gstart[W][2] = {}, act[W];
+  for (int64_t k = K; k >= 1; --k) {
+    for (int l = 0; l < W; ++l) {
+      act[l] = k <= lane[l].steps ? T(1) : T(0);
+      if (k > lane[l].steps || k > lane[l].n_grasp) continue;
+      const int64_t g = lane[l].g;
+      T a[2] = {gx[(2 * g) * W + l], gx[(2 * g + 1) * W + l]}, c[2] = {gv[(2 * g) * W + l], gv[(2 * g + 1) * W + l]};
+      reference_adjoint(d + 2 * l, sp[l], k, h, vmax, a, c, gd[l], gstart[l]);
+      gx[(2 * g) * W + l] = gx[(2 * g + 1) * W + l] = gv[(2 * g) * W + l] = gv[(2 * g + 1) * W + l] = T(0);
+    }
+    for (int64_t i = 0; i < rows * W; ++i) u[i] = gv[i] + h * gx[i];
+    group_hvp(s, n, traj.get() + rows * W * (k - 1), betas.get() + n * W * (k - 1), u.data(), hu.data(), w);
+    for (int64_t i = 0; i < rows; ++i) {
+      T* __restrict gxi = gx.data() + i * W;
+      T* __restrict gvi = gv.data() + i * W;
+      const T* __restrict ui = u.data() + i * W;
+      const T* __restrict hui = hu.data() + i * W;
+      for (int l = 0; l < W; ++l) {
+        const T gxo = gxi[l], gvo = gvi[l];
+        gxi[l] = act[l] != T(0) ? gxo - coef * hui[l] : gxo;
+        gvi[l] = act[l] != T(0) ? damp * ui[l] : gvo;
+      }
+    }
+  }
+  for (int l = 0; l < W; ++l) {
+    if (lane[l].n_grasp > 0) {
+      gx[(2 * lane[l].g) * W + l] += gstart[l][0];
+      gx[(2 * lane[l].g + 1) * W + l] += gstart[l][1];
+    }
+    grad_delta[2 * (b0 + l)] = gd[l][0];
+    grad_delta[2 * (b0 + l) + 1] = gd[l][1];
+  }
+  from_group(n, gx.data(), b0, grad_pos);
+  from_group(n, gv.data(), b0, grad_vel);
+}
+
 template <typename T>
 void forward(const double* fp, const int64_t* ip, const T* pos, const T* vel, const int64_t* node, const T* delta,
              const T* speed, const int64_t* n_grasp, T* out_pos, T* out_vel, int64_t* out_steps,
              int64_t* out_settled, int64_t* out_diverged) {
   const Scalars s{fp[0], fp[1], fp[2], fp[3], fp[4], fp[5], fp[6], fp[7], fp[8]};
-  const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6]};
+  const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6], ip[7]};
   const int64_t n = in.n;
-  parallel_for(in.B, in.threads, [&](int64_t b) {
+  const int64_t groups = in.use_groups ? in.B / W : 0, first = groups * W;
+  parallel_for(groups + in.B - first, in.threads, [&](int64_t task) {
+    if (task < groups) {
+      forward_group(s, in, task * W, pos, vel, node, delta, speed, n_grasp, out_pos, out_vel, out_steps,
+                    out_settled, out_diverged);
+      return;
+    }
+    const int64_t b = first + task - groups;
     Work<T> w(n);
     T* x = out_pos + 2 * n * b;
     T* v = out_vel + 2 * n * b;
@@ -247,10 +601,17 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
               const T* speed, const int64_t* n_grasp, const T* grad_out_pos, const T* grad_out_vel, T* grad_pos,
               T* grad_vel, T* grad_delta) {
   const Scalars s{fp[0], fp[1], fp[2], fp[3], fp[4], fp[5], fp[6], fp[7], fp[8]};
-  const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6]};
+  const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6], ip[7]};
   const int64_t n = in.n;
   const int64_t max_steps = in.fixed_steps >= 0 ? in.fixed_steps : in.max_drag + in.max_settle + 1;
-  parallel_for(in.B, in.threads, [&](int64_t b) {
+  const int64_t groups = in.use_groups ? in.B / W : 0, first = groups * W;
+  parallel_for(groups + in.B - first, in.threads, [&](int64_t task) {
+    if (task < groups) {
+      backward_group(s, in, task * W, pos, vel, node, delta, speed, n_grasp, grad_out_pos, grad_out_vel, grad_pos,
+                     grad_vel, grad_delta);
+      return;
+    }
+    const int64_t b = first + task - groups;
     Work<T> w(n);
     // uninitialised: every slot read is written by the recomputation first
     std::unique_ptr<T[]> traj(new T[2 * n * (max_steps + 2)]), betas(new T[(n - 2) * (max_steps + 1)]);
@@ -272,32 +633,13 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
     else std::fill(gv, gv + 2 * n, T(0));
     T gd[2] = {0, 0}, gstart[2] = {0, 0};
     const T h = T(s.h), vmax = T(s.vmax);
-    const T dist = std::sqrt(d[0] * d[0] + d[1] * d[1]);
-    const T safe = std::max(dist, T(1e-12));
-    const T ux = d[0] / safe, uy = d[1] / safe;
-    const bool fast = sp > vmax;   // speed = dist / (max_drag h): the path takes exactly max_drag substeps
-    const T md = T(in.max_drag);
     const T coef = h * s.inv_m * s.damp;
     for (int64_t k = K; k >= 1; --k) {
       if (k <= n_grasp[b]) {
-        // x_k[g] = start + frac_k d,  v_k[g] = moving_k * speed / |d| * d
-        const T raw = T(k) * h * sp / safe;
-        const T a0 = gx[2 * g], a1 = gx[2 * g + 1], c0 = gv[2 * g], c1 = gv[2 * g + 1];
-        gstart[0] += a0;
-        gstart[1] += a1;
-        if (raw > T(1)) {                 // on the goal: d(ref)/dd = I
-          gd[0] += a0;
-          gd[1] += a1;
-        } else if (fast) {                // frac = k / max_drag, refv = d / (max_drag h)
-          gd[0] += T(k) / md * a0 + c0 / (md * h);
-          gd[1] += T(k) / md * a1 + c1 / (md * h);
-        } else {                          // ref = start + k h vmax u, refv = vmax u; du/dd = (I - u u^T)/|d|
-          const T pa = (a0 * ux + a1 * uy), pc = (c0 * ux + c1 * uy);
-          const T fa = T(k) * h * vmax / safe, fc = vmax / safe;
-          gd[0] += fa * (a0 - pa * ux) + fc * (c0 - pc * ux);
-          gd[1] += fa * (a1 - pa * uy) + fc * (c1 - pc * uy);
-        }
-        gx[2 * g] = gx[2 * g + 1] = gv[2 * g] = gv[2 * g + 1] = T(0);
+        T* a = gx + 2 * g;
+        T* c = gv + 2 * g;
+        reference_adjoint(d, sp, k, h, vmax, a, c, gd, gstart);
+        a[0] = a[1] = c[0] = c[1] = T(0);
       }
       // x_k = x_{k-1} + h v_k, v_k = damp (v_{k-1} + h/m F(x_{k-1})), F = -grad E
       for (int64_t i = 0; i < 2 * n; ++i) v[i] = gv[i] + h * gx[i];      // v reused as u
