@@ -38,3 +38,27 @@ def test_batched_render_equals_single_renders_and_colours():
     assert (only_target == 255).all(-1).float().mean() > 0.8           # mostly white background
     rope_only = image.render_ropes(ropes[:1], None, size=48)[0]
     assert (rope_only == torch.tensor(image.ROPE_COLOR, dtype=torch.uint8)).all(-1).any()
+
+
+def _dense_coverage(polylines, size, view_size, width):
+    """Brute force: every pixel against every segment (the definition)."""
+    px = view_size / size
+    grid = image.pixel_centres(size, view_size, dtype=polylines.dtype).view(-1, 2)
+    a, b = polylines[:, :-1], polylines[:, 1:]
+    ap = grid[None, :, None, :] - a[:, None]
+    ab = (b - a)[:, None]
+    t = ((ap * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-12)).clamp(0, 1)
+    d = (ap - t[..., None] * ab).norm(dim=-1).amin(-1)
+    return (0.5 + (width / 2 - d) / px).clamp(0, 1).view(-1, size, size)
+
+
+def test_windowed_coverage_equals_the_dense_definition():
+    import diffdlo
+    p = diffdlo.load_params()
+    ropes = diffdlo.random_shape(5, p, torch.Generator().manual_seed(0), dtype=torch.float64)
+    ropes = ropes * 1.3 + torch.tensor([0.12, -0.05], dtype=torch.float64)   # partly outside the small views
+    for size, view in [(64, 1.0), (200, 1.0), (32, 2.0), (48, 0.3)]:
+        width = max(2.0 * view / size, 0.015 * view)
+        fast = image.coverage(ropes, size, view)
+        assert fast.max() == 1.0 and fast.min() == 0.0
+        torch.testing.assert_close(fast, _dense_coverage(ropes, size, view, width), rtol=0, atol=1e-9)
