@@ -1,0 +1,182 @@
+"""Cross-entropy method over action sequences, and a receding-horizon CEM planner for the shape task.
+
+``CEM`` is generic: it minimises any ``objective(actions (B, H, A)) -> (B,)`` over sequences in a box
+[low, high]^A (PlaNet will give it a learned latent model's objective). Continuous dimensions get a Gaussian per
+step, refit from the elites (mean/std, clipped samples). Optional discrete dimensions (``discrete={dim: K}``, the
+value of category k being low + k (high - low) / (K - 1), e.g. the env's node action a0 = node / (N - 1)) get a
+categorical per step refit from the elite counts; the Gaussians of the continuous dimensions are then kept per
+category (the best drag depends on the grasped node: averaging the drags of elites that grasp different nodes
+would blur them), refit from the elites of that category and left unchanged when a category has no elite.
+Elitism: the elites of the previous iteration stay in the population with their (deterministic) costs, and the
+best sequence ever seen is returned. Warm start (``shift``): the distribution and the best sequence move one step
+forward; the new last step starts from the prior; the shifted best sequence is re-evaluated as one candidate.
+"""
+from __future__ import annotations
+
+import argparse
+from typing import Callable
+
+import torch
+
+from .objective import SimObjective
+
+
+class CEM:
+    def __init__(self, action_dim: int, horizon: int, candidates: int = 300, elites: int = 30, iterations: int = 5,
+                 discrete: dict[int, int] | None = None, low: float = 0.0, high: float = 1.0,
+                 init_std: float = 0.5, min_std: float = 0.01, cat_floor: float = 0.02, shift_mix: float = 0.5,
+                 generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64):
+        if not 1 <= elites <= candidates:
+            raise ValueError(f"need 1 <= elites <= candidates, got elites={elites}, candidates={candidates}")
+        discrete = dict(discrete or {})
+        if len(discrete) > 1:
+            raise ValueError("at most one discrete dimension is supported")
+        self.A, self.H = int(action_dim), int(horizon)
+        self.candidates, self.elites, self.iterations = int(candidates), int(elites), int(iterations)
+        self.low, self.high = float(low), float(high)
+        self.init_std, self.min_std, self.cat_floor, self.shift_mix = init_std, min_std, cat_floor, shift_mix
+        self.ddim, self.K = (next(iter(discrete.items())) if discrete else (None, 1))
+        self.cdims = [d for d in range(self.A) if d != self.ddim]
+        self.gen = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.dtype = dtype
+        self.history: list[dict[str, float]] = []
+        self.reset()
+
+    # ------------------------------------------------------------------ distribution
+    def _prior(self, h: int):
+        mid = (self.low + self.high) / 2
+        mean = torch.full((h, self.K, len(self.cdims)), mid, dtype=self.dtype)
+        std = torch.full_like(mean, self.init_std * (self.high - self.low))
+        probs = torch.full((h, self.K), 1.0 / self.K, dtype=self.dtype)
+        return mean, std, probs
+
+    def reset(self) -> None:
+        self.mean, self.std, self.probs = self._prior(self.H)
+        self.best: torch.Tensor | None = None
+        self.best_cost = float("inf")
+
+    def shift(self) -> None:
+        """Warm start for the next control step: drop the executed first step, append a prior step."""
+        mean, std, probs = self._prior(1)
+        self.mean = torch.cat([self.mean[1:], mean])
+        self.std = torch.cat([self.std[1:].clamp_min(0.5 * self.init_std * (self.high - self.low)), std])
+        uniform = torch.full_like(self.probs[1:], 1.0 / self.K)
+        self.probs = torch.cat([self.shift_mix * self.probs[1:] + (1 - self.shift_mix) * uniform, probs])
+        if self.best is not None:
+            self.best = torch.cat([self.best[1:], self._sample(1, mean, std, probs)[0]])
+        self.best_cost = float("inf")                       # the state changed: the old cost is meaningless
+
+    def _value(self, k: torch.Tensor) -> torch.Tensor:
+        return self.low + k.to(self.dtype) * (self.high - self.low) / max(self.K - 1, 1)
+
+    def _category(self, x: torch.Tensor) -> torch.Tensor:
+        if self.ddim is None:
+            return torch.zeros(x.shape[:-1], dtype=torch.int64)
+        k = torch.round((x[..., self.ddim] - self.low) / (self.high - self.low) * (self.K - 1))
+        return k.clamp(0, self.K - 1).to(torch.int64)
+
+    def _sample(self, n: int, mean=None, std=None, probs=None) -> torch.Tensor:
+        mean = self.mean if mean is None else mean
+        std = self.std if std is None else std
+        probs = self.probs if probs is None else probs
+        h = mean.shape[0]
+        x = torch.empty(n, h, self.A, dtype=self.dtype)
+        if self.ddim is not None:
+            k = torch.multinomial(probs, n, replacement=True, generator=self.gen).T          # (n, h)
+            x[..., self.ddim] = self._value(k)
+        else:
+            k = torch.zeros(n, h, dtype=torch.int64)
+        t = torch.arange(h).expand(n, h)
+        m, s = mean[t, k], std[t, k]                                                          # (n, h, Ac)
+        noise = torch.randn(n, h, len(self.cdims), dtype=self.dtype, generator=self.gen)
+        x[..., self.cdims] = (m + s * noise).clamp(self.low, self.high)
+        return x
+
+    def _refit(self, elite: torch.Tensor) -> None:
+        k = self._category(elite)                                                             # (E, H)
+        xc = elite[..., self.cdims]
+        if self.ddim is not None:
+            counts = torch.nn.functional.one_hot(k, self.K).sum(0).to(self.dtype)             # (H, K)
+            freq = counts / counts.sum(-1, keepdim=True)
+            self.probs = (1 - self.cat_floor) * freq + self.cat_floor / self.K
+        for t in range(self.H):
+            for c in k[:, t].unique().tolist():
+                sel = xc[k[:, t] == c, t]
+                self.mean[t, c] = sel.mean(0)
+                if sel.shape[0] > 1:
+                    self.std[t, c] = sel.std(0, unbiased=False).clamp_min(self.min_std * (self.high - self.low))
+
+    # ------------------------------------------------------------------ optimisation
+    @torch.no_grad()
+    def optimize(self, objective: Callable[[torch.Tensor], torch.Tensor]) -> tuple[torch.Tensor, float]:
+        """Run the iterations on ``objective``; returns the best sequence (H, A) and its cost. ``history`` gets one
+        entry per iteration: the best cost so far and the mean elite cost."""
+        self.history = []
+        pop = cost = None
+        for it in range(self.iterations):
+            n = self.candidates - (0 if pop is None else pop.shape[0])
+            x = self._sample(n)
+            if it == 0 and self.best is not None:
+                x[0] = self.best                                    # warm start: re-evaluate the shifted plan
+            c = objective(x).detach().to("cpu", self.dtype)
+            if not bool(torch.isfinite(c).all()):
+                raise FloatingPointError(f"objective returned non-finite costs: {c[~torch.isfinite(c)][:5].tolist()}")
+            pop = x if pop is None else torch.cat([pop, x])
+            cost = c if cost is None else torch.cat([cost, c])
+            order = cost.argsort()[: self.elites]
+            pop, cost = pop[order], cost[order]                      # the elites survive into the next iteration
+            if float(cost[0]) < self.best_cost:
+                self.best, self.best_cost = pop[0].clone(), float(cost[0])
+            self._refit(pop)
+            self.history.append({"best": self.best_cost, "elite_mean": float(cost.mean())})
+        return self.best.clone(), self.best_cost
+
+
+class CEMPlanner:
+    """Receding-horizon CEM for the shape task: plan H moves through the simulator, execute the first, replan
+    (warm-started by shifting the last solution)."""
+
+    name = "cem"
+
+    def __init__(self, sim, horizon: int = 2, candidates: int = 300, elites: int = 30, iterations: int = 5,
+                 running_weight: float = 0.5, seed: int = 0, **cem_kw):
+        self.sim, self.p = sim, sim.params
+        self.cem = CEM(3, horizon, candidates, elites, iterations, discrete={0: self.p.n_nodes},
+                       generator=torch.Generator().manual_seed(seed), **cem_kw)
+        self.running_weight = running_weight
+        self.sim_evals = 0
+
+    def reset(self) -> None:
+        self.cem.reset()
+
+    def plan(self, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """pos (N, 2), target (N, 2) -> the first action (3,) of the best plan, in [0, 1]."""
+        obj = SimObjective(self.sim, pos, target, running_weight=self.running_weight)
+        best, _ = self.cem.optimize(obj)
+        self.sim_evals += obj.sim_evals
+        self.cem.shift()
+        return best[0]
+
+    @staticmethod
+    def add_args(parser: argparse.ArgumentParser) -> None:
+        g = parser.add_argument_group("CEM")
+        g.add_argument("--horizon", type=int, default=2, help="moves planned ahead (default 2)")
+        g.add_argument("--candidates", type=int, default=300, help="sequences per iteration (default 300)")
+        g.add_argument("--elites", type=int, default=30, help="elites refit per iteration (default 30)")
+        g.add_argument("--iterations", type=int, default=5, help="CEM iterations per control step (default 5)")
+        g.add_argument("--running-weight", type=float, default=0.5,
+                       help="weight of the intermediate states' error in the cost (default 0.5)")
+
+    @classmethod
+    def from_args(cls, sim, args) -> "CEMPlanner":
+        return cls(sim, horizon=args.horizon, candidates=args.candidates, elites=args.elites,
+                   iterations=args.iterations, running_weight=args.running_weight, seed=args.seed)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .common import run_cli
+    return run_cli(CEMPlanner, "cem", __doc__, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,147 @@
+"""Shared receding-horizon (MPC) episode loop, CLI and results for the planners.
+
+A planner has ``name``, ``sim_evals`` (rope-moves it has simulated), ``reset()`` (new episode) and
+``plan(pos (N, 2), target (N, 2)) -> action (3,)`` (an env node action in [0, 1]^3); ``run_episode`` executes
+its first action in ``BatchedShapeControl`` and replans until success (shape_error < success_tol) or max_steps.
+Episode i starts from ``env.reset(seed=seed + i)``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm import tqdm
+
+from diffdlo.envs.shape_control import BatchedShapeControl
+from diffdlo.params import ParamsError, load_params
+from diffdlo.shapes import TARGET_NAMES, TargetError
+
+DEFAULT_MAX_STEPS = 15
+
+
+def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", progress: bool = True) -> dict[str, Any]:
+    """One episode of receding-horizon control. Returns the episode record plus its frames (T+1, N, 2)."""
+    env.reset(seed=seed)
+    planner.reset()
+    target = env.target[0].clone()
+    frames = [env.pos[0].clone()]
+    errors = [float(env.info()["shape_error"][0])]
+    grad0 = getattr(planner, "grad_evals", 0)
+    if hasattr(planner, "grad_norms"):
+        planner.grad_norms = []
+    evals0, plan_s, steps, success = planner.sim_evals, 0.0, 0, bool(env.info()["is_success"][0])
+    bar = tqdm(total=env.max_steps, desc=desc, disable=not progress, leave=True, dynamic_ncols=True)
+    while not success:
+        t0 = time.perf_counter()
+        action = planner.plan(env.pos[0].clone(), target)
+        plan_s += time.perf_counter() - t0
+        _, _, term, trunc, info = env.step(action.detach().reshape(1, -1).to(torch.float64))
+        steps += 1
+        frames.append(env.pos[0].clone())
+        errors.append(float(info["shape_error"][0]))
+        success = bool(term[0])
+        bar.update(1)
+        bar.set_postfix(err_cm=f"{errors[-1] * 100:.2f}", node=int(info["node"][0]))
+        if bool(trunc[0]):
+            break
+    bar.close()
+    stats = planner.episode_stats() if hasattr(planner, "episode_stats") else {}
+    if "grad_evals" in stats:
+        stats["grad_evals"] -= grad0
+    return {**stats, "success": success, "steps": steps, "final_error": errors[-1], "start_error": errors[0],
+            "errors": errors, "sim_evals": planner.sim_evals - evals0, "plan_s": plan_s,
+            "plan_s_per_step": plan_s / max(steps, 1), "seed": seed, "frames": torch.stack(frames)}
+
+
+def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=f"python -m planners.{name}", description=doc,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--target", default="diagonal",
+                        help=f"one of {list(TARGET_NAMES)} or a path to an (N, 2) .npy/.yaml polyline of the rope's "
+                             f"link lengths (default diagonal)")
+    parser.add_argument("--seed", type=int, default=0, help="episode i starts from env.reset(seed=SEED + i) (default 0)")
+    parser.add_argument("--episodes", type=int, default=1, help="episodes (default 1)")
+    parser.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS,
+                        help=f"moves per episode (default {DEFAULT_MAX_STEPS})")
+    parser.add_argument("--out", default=None, help=f"output folder (default runs/{name}-<target>)")
+    parser.add_argument("--device", default="cpu", help="simulator device (default cpu)")
+    parser.add_argument("--params", default="cable", help="params name or YAML path (default cable)")
+    parser.add_argument("--success-tol", type=float, default=None, help="success threshold [m] (default params: 0.01)")
+    parser.add_argument("--no-gif", action="store_true", help="skip the GIFs")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    planner_cls.add_args(parser)
+    return parser
+
+
+def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = None) -> int:
+    parser = make_parser(name, doc, planner_cls)
+    args = parser.parse_args(argv)
+    if args.episodes < 1 or args.max_steps < 1:
+        parser.error(f"--episodes and --max-steps must be >= 1, got {args.episodes} and {args.max_steps}")
+    try:
+        p = load_params(args.params)
+    except (ParamsError, OSError, ValueError) as exc:
+        parser.error(f"bad --params {args.params!r}: {exc}")
+    try:
+        env = BatchedShapeControl(1, target="horizontal", max_steps=args.max_steps, success_tol=args.success_tol,
+                                  params=p, device=args.device)
+    except (ValueError, RuntimeError) as exc:
+        parser.error(str(exc))
+    try:
+        target = env.sim.target_shape(args.target)
+    except TargetError as exc:
+        print(f"error: bad --target {args.target!r}: {exc}", file=sys.stderr)
+        return 2
+    env.target_spec = target
+    planner = planner_cls.from_args(env.sim, args)
+    label = Path(args.target).stem if args.target not in TARGET_NAMES else args.target
+    out = Path(args.out or f"runs/{name}-{label}")
+    out.mkdir(parents=True, exist_ok=True)
+
+    t0 = time.perf_counter()
+    episodes = []
+    for i in range(args.episodes):
+        episodes.append(run_episode(env, planner, args.seed + i, desc=f"{name} {label} ep {i + 1}/{args.episodes}",
+                                    progress=not args.quiet))
+    wall = time.perf_counter() - t0
+    write_outputs(out, name, args, label, target, episodes, wall)
+    return 0
+
+
+def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor, episodes: list[dict], wall: float):
+    from diffdlo import render
+
+    n = len(episodes)
+    steps = sum(e["steps"] for e in episodes)
+    plan_s = sum(e["plan_s"] for e in episodes)
+    records = [{k: v for k, v in e.items() if k != "frames"} for e in episodes]
+    results = {
+        "method": name, "target": args.target, "seed": args.seed,
+        "success_rate": sum(e["success"] for e in episodes) / n,
+        "episodes": records, "env_steps": steps, "wall_s": wall,
+        "sim_evals": sum(e["sim_evals"] for e in episodes),
+        "plan_s_per_step": plan_s / max(steps, 1), "max_steps": args.max_steps,
+        "config": {k: v for k, v in vars(args).items() if k not in ("out", "quiet")},
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    ropes, titles = [], []
+    for i, e in enumerate(episodes):
+        ropes += [e["frames"][0], e["frames"][-1]]
+        titles += [f"ep {i} (seed {e['seed']}) start: {e['start_error'] * 100:.1f} cm",
+                   f"after {e['steps']} moves: {e['final_error'] * 100:.2f} cm"]
+    png = out / "shapes.png"
+    render.plot_ropes(torch.stack(ropes), target, png, titles=titles, cols=2)
+    if not args.no_gif:
+        for i, e in enumerate(episodes):
+            render.save_gif(e["frames"], out / f"episode_{i}.gif", target, fps=2, title=f"{name} ep {i}")
+    succ = [e for e in episodes if e["success"]]
+    moves = f"{sum(e['steps'] for e in succ) / len(succ):.1f}" if succ else "-"
+    print(f"{name} {label}: success {len(succ)}/{n}, moves to success (mean) {moves}, final error mean "
+          f"{sum(e['final_error'] for e in episodes) / n * 100:.2f} cm max "
+          f"{max(e['final_error'] for e in episodes) * 100:.2f} cm, plan {results['plan_s_per_step']:.2f} s/step, "
+          f"sim_evals/episode {results['sim_evals'] / n:.0f}, wall {wall:.1f} s -> {out}/results.json, {png}")

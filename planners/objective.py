@@ -1,0 +1,81 @@
+"""The planning objective: cost of B candidate action sequences from one start state.
+
+``SimObjective(sim, start, target)(actions (B, H, 3)) -> (B,)`` rolls the B sequences out with ONE batched
+``Simulator.move`` per horizon step and returns the ``shape_error`` [m] (centroid-aligned mean node distance, the
+metric that defines success in the env) after the last move. Actions are the env's node actions in [0, 1]^3, clipped
+to [0, 1] and decoded exactly like ``BatchedShapeControl.decode`` (node = round(a0 (N-1)), d = a 2 s - s), so a plan
+can be executed in the env as is. Planners only need ``objective(actions) -> costs``: the CEM optimizer is generic
+and can later be given a learned latent model's objective instead (PlaNet).
+
+Why shape_error and not the env's default reward (eq 2.9-2.11, pairwise distances + end-to-end angle): the task's
+success test is shape_error < success_tol, it is in metres (readable), smooth almost everywhere, and is what the
+gradient planner backpropagates; every planner here (CEM, gradient, greedy) optimises or greedily reduces the same
+quantity. ``running_weight`` > 0 adds that weight times the mean error of the intermediate states (H > 1 only),
+which prefers plans that improve early (useful in receding-horizon control, where only the first move is kept).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from diffdlo.params import CableParams
+from diffdlo.rewards import shape_error
+from diffdlo.simulator import Simulator
+
+
+def decode_node_actions(actions: torch.Tensor, p: CableParams) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 3) node actions -> node (...,) int64, drag (..., 2) [m]; the env's decoding (eq 2.6), after clipping
+    to [0, 1]. Differentiable with respect to the drag part."""
+    a = actions.clamp(0.0, 1.0)
+    s = p.action_scale
+    node = torch.round(a[..., 0].detach() * (p.n_nodes - 1)).to(torch.int64)
+    return node, a[..., 1:] * (2 * s) - s
+
+
+def encode_node_actions(node: torch.Tensor, delta: torch.Tensor, p: CableParams) -> torch.Tensor:
+    """Inverse of decode_node_actions: node (...,) and drag (..., 2) [m] -> (..., 3) node actions in [0, 1]."""
+    s = p.action_scale
+    a0 = node.to(delta.dtype) / (p.n_nodes - 1)
+    return torch.cat([a0.unsqueeze(-1), ((delta + s) / (2 * s)).clamp(0.0, 1.0)], dim=-1)
+
+
+class SimObjective:
+    """cost(actions (B, H, 3)) -> (B,) shape_error after rolling the sequences out from ``start`` (N, 2).
+
+    ``sim_evals`` counts the rope-moves simulated (forward), ``calls`` the batched calls. Differentiable with
+    respect to the drag part of the actions (use ``rollout_deltas`` for node ids + drags directly).
+    """
+
+    def __init__(self, sim: Simulator, start: torch.Tensor, target: torch.Tensor, running_weight: float = 0.0):
+        self.sim, self.p = sim, sim.params
+        self.start = start.detach().to(device=sim.device, dtype=sim.dtype)
+        self.target = target.detach().to(device=sim.device, dtype=sim.dtype)
+        self.running_weight = float(running_weight)
+        self.sim_evals = 0
+        self.calls = 0
+
+    def rollout_deltas(self, node: torch.Tensor, delta: torch.Tensor, return_states: bool = False):
+        """node (B, H) int64, delta (B, H, 2) [m] -> cost (B,) (and the states (B, H, N, 2) after each move)."""
+        b, h = node.shape
+        pos = self.start.expand(b, *self.start.shape).contiguous()
+        cost = torch.zeros(b, dtype=self.sim.dtype, device=self.sim.device)
+        states = []
+        for t in range(h):
+            pos = self.sim.move(pos, node[:, t].to(self.sim.device), delta[:, t].to(self.sim.dtype))
+            self.sim_evals += b
+            self.calls += 1
+            states.append(pos)
+            if t < h - 1 and self.running_weight > 0:
+                cost = cost + self.running_weight * shape_error(pos, self.target) / (h - 1)
+        cost = cost + shape_error(pos, self.target)
+        return (cost, torch.stack(states, 1)) if return_states else cost
+
+    def __call__(self, actions: torch.Tensor) -> torch.Tensor:
+        if actions.ndim != 3 or actions.shape[-1] != 3:
+            raise ValueError(f"actions must have shape (B, H, 3), got {tuple(actions.shape)}")
+        node, delta = decode_node_actions(actions.to(device=self.sim.device, dtype=self.sim.dtype), self.p)
+        return self.rollout_deltas(node, delta)
+
+
+Objective = Callable[[torch.Tensor], torch.Tensor]
