@@ -70,6 +70,7 @@ def _build() -> ctypes.CDLL:
                 raise RuntimeError(f"{compiler} failed to build {SOURCE}:\n{result.stderr[-2000:]}")
             os.replace(out, target)     # atomic: concurrent processes never load a half-written file
     lib = ctypes.CDLL(str(target))
+    lib.diffdlo_lanes.restype = ctypes.c_int64
     ptr = ctypes.c_void_p
     for suffix in ("f32", "f64"):
         getattr(lib, f"diffdlo_forward_{suffix}").argtypes = [ptr] * 13
@@ -100,6 +101,11 @@ def available() -> bool:
 def unavailable_reason() -> str | None:
     _load()
     return _error
+
+
+def lanes() -> int:
+    """Ropes per vectorized lane group (full groups take the vectorized path, the rest the per-rope path)."""
+    return int(_load().diffdlo_lanes())
 
 
 def _ptr(t: torch.Tensor | None) -> ctypes.c_void_p | None:

@@ -10,6 +10,9 @@ from conftest import crumpled
 
 pytestmark = pytest.mark.skipif(not kernel.available(), reason=f"kernel unavailable: {kernel.unavailable_reason()}")
 
+# Batches of one full vectorized lane group plus a few ropes on the per-rope path exercise both code paths.
+MIXED = (kernel.lanes() + 3) if kernel.available() else 19
+
 
 def pair(p, dtype=torch.float64):
     return (diffdlo.Simulator(p, dtype=dtype, backend="torch"), diffdlo.Simulator(p, dtype=dtype, backend="kernel"))
@@ -27,10 +30,10 @@ def test_kernel_move_equals_reference_with_gradients(params, variant):
     # fast_path: a drag that would need more than max_drag_steps substeps goes faster than max_speed
     p = params if variant == "default" else dataclasses.replace(params, max_drag_steps=300)
     ref, fast = pair(p)
-    # 11 ropes: one lane group of 8 (vectorized across ropes) and 3 on the per-rope path
-    pos = crumpled(11, params, sigma=0.3, seed=1)
-    node, delta = actions(11, seed=2)
-    delta[9] = 0.0
+    # one lane group (vectorized across ropes) and 3 ropes on the per-rope path
+    pos = crumpled(MIXED, params, sigma=0.3, seed=1)
+    node, delta = actions(MIXED, seed=2)
+    delta[MIXED - 2] = 0.0
     delta[0] = 0.0                                    # no drag at all: settle only
     delta[1] = torch.tensor([0.3, -0.2], dtype=torch.float64)      # clipped to max_disp
     assert fast.uses_kernel() and not ref.uses_kernel()
@@ -60,7 +63,7 @@ def test_kernel_hessian_vector_product_matches_autograd(params):
     torch.testing.assert_close(kernel.hvp(params, pos, u), expected, rtol=1e-9, atol=1e-10)
 
 
-@pytest.mark.parametrize("batch", [2, 9])          # 9: a lane group of 8 and one rope on the per-rope path
+@pytest.mark.parametrize("batch", [2, MIXED])
 def test_gradcheck_kernel_move(params, batch):
     p = dataclasses.replace(params, n_nodes=6, length=0.15, max_speed=1.0, settle_threshold=0.0,
                             settle_check_every=10, settle_max_substeps=30)
@@ -75,7 +78,7 @@ def test_gradcheck_kernel_move(params, batch):
 
 def test_kernel_free_evolution_equals_reference(params):
     ref, fast = pair(params)
-    pos = crumpled(10, params, sigma=0.5, seed=5) * 1.02
+    pos = crumpled(MIXED, params, sigma=0.5, seed=5) * 1.02
     vel = 0.01 * torch.randn(pos.shape, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
     grads = []
     for sim in (ref, fast):
@@ -92,15 +95,15 @@ def test_float32_kernel_within_1mm_of_the_float64_reference(params):
     """Issue 4's accuracy bar: after one move and after 1 s of free evolution."""
     ref = diffdlo.Simulator(params, dtype=torch.float64, backend="torch")
     fast = diffdlo.Simulator(params, dtype=torch.float32, backend="kernel")
-    pos = crumpled(12, params, sigma=0.3, seed=7)
-    node, delta = actions(12, seed=8)
+    pos = crumpled(MIXED, params, sigma=0.3, seed=7)
+    node, delta = actions(MIXED, seed=8)
     moved = fast.move(pos.float(), node, delta.float()).double()
     assert (moved - ref.move(pos, node, delta)).norm(dim=-1).max() < 1e-3
     free = fast.integrate(pos.float(), None, 1000)[0].double()
     assert (free - ref.integrate(pos, None, 1000)[0]).norm(dim=-1).max() < 1e-3
 
 
-@pytest.mark.parametrize("batch,bad", [(2, 0), (10, 3), (10, 9)])
+@pytest.mark.parametrize("batch,bad", [(2, 0), (MIXED, 3), (MIXED, MIXED - 1)])
 def test_kernel_reports_divergence(params, batch, bad):
     pos = crumpled(batch, params)
     pos[bad, 5] = pos[bad, 4]
@@ -130,10 +133,10 @@ def test_backend_selection_and_fallback(params, monkeypatch):
 def test_gradient_of_a_move_sequence_equals_plain_autograd(params):
     """Issue 4: the memory-bounded gradient of several moves equals autograd through the eager loop."""
     ref, fast = pair(params)
-    pos = crumpled(9, params, sigma=0.3, seed=9)
+    pos = crumpled(MIXED, params, sigma=0.3, seed=9)
     g = torch.Generator().manual_seed(10)
-    nodes = [torch.randint(0, 20, (9,), generator=g) for _ in range(3)]
-    deltas = (torch.rand(3, 9, 2, generator=g, dtype=torch.float64) * 2 - 1) * 0.08
+    nodes = [torch.randint(0, 20, (MIXED,), generator=g) for _ in range(3)]
+    deltas = (torch.rand(3, MIXED, 2, generator=g, dtype=torch.float64) * 2 - 1) * 0.08
     target = diffdlo.target_shape("vertical", params, dtype=torch.float64)
     grads = []
     for sim in (ref, fast):

@@ -251,7 +251,7 @@ int64_t run_rope(const Scalars& s, const Ints& in, T* x, T* v, int64_t g, const 
 // Lane groups: W ropes in lockstep, batch index innermost (array[(row * W) + lane]), so the compiler vectorizes
 // every per-node loop across ropes. Same scheme as the per-rope path above; a lane whose rope has finished is
 // frozen by selects. Used for full groups of W ropes; the remaining ropes take the per-rope path.
-constexpr int W = 8;
+constexpr int W = 16;   // 16 floats = one AVX-512 vector (two AVX2 vectors); measured 1.5x over 8
 
 // Branch-free atan2 (Cephes atan rational approximation; within ~1 ulp of std::atan2, same signed zeros).
 template <typename T>
@@ -661,6 +661,7 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
 }  // namespace
 
 extern "C" {
+int64_t diffdlo_lanes() { return W; }
 #define DIFFDLO_EXPORT(T, SUFFIX)                                                                                  \
   void diffdlo_forward_##SUFFIX(const double* fp, const int64_t* ip, const T* pos, const T* vel,                   \
                                 const int64_t* node, const T* delta, const T* speed, const int64_t* n_grasp,       \
