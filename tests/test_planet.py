@@ -133,7 +133,7 @@ def test_tiny_model_overfits_a_fixed_sequence():
         opt.zero_grad()
         L["loss"].backward()
         opt.step()
-        losses.append(float(L["recon"] + L["reward_loss"]))
+        losses.append(float((L["recon"] + L["reward_loss"]).detach()))
     assert losses[-1] < losses[0] / 10, (losses[0], losses[-1])
 
 
