@@ -1,0 +1,128 @@
+"""The comparison harness (benchmarks/compare.py): confidence intervals, a CI-sized quick run, its report, resume,
+and the optional Ray path."""
+import json
+import math
+import re
+from pathlib import Path
+
+import pytest
+
+from benchmarks import compare
+
+# quick grid, further restricted: two planners and one learner (64 env steps, tiny networks, 6-node rope), one seed,
+# the diagonal task plus greedy on the random task (one planner run per episode, merged)
+ARGS = ["--quick", "--methods", "greedy", "cem", "sac", "--seeds", "0", "--jobs", "1", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    root = tmp_path_factory.mktemp("compare")
+    argv = [*ARGS, "--out", str(root / "cells"), "--doc", str(root / "RESULTS.md"), "--figures", str(root / "fig")]
+    assert compare.main(argv) == 0
+    return root, argv
+
+
+def parse_tables(md: str) -> dict[str, list[dict[str, str]]]:
+    tables, target, header = {}, None, None
+    for line in md.splitlines():
+        m = re.match(r"## Task: (\S+)", line)
+        if m:
+            target, header = m.group(1), None
+            continue
+        if target and line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split(" | ")]
+            if header is None:
+                header = cells
+            elif not set(line.replace("|", "").strip()) <= {"-"}:
+                assert len(cells) == len(header), line
+                tables.setdefault(target, []).append(dict(zip(header, cells)))
+    return tables, header
+
+
+def test_t_quantile_and_intervals_match_hand_computed():
+    # Student t 97.5 % quantiles (tables): df 1, 4, 9, 30
+    for df, t in ((1, 12.7062), (4, 2.7764), (9, 2.2622), (30, 2.0423)):
+        assert compare.t_quantile(0.975, df) == pytest.approx(t, abs=1e-4)
+    # per-seed success rates 0.6 0.8 1.0 0.8 0.8: mean 0.8, sd = sqrt(0.08 / 4) = 0.141421,
+    # half width = 2.776445 * 0.141421 / sqrt(5) = 0.175598
+    m, lo, hi = compare.t_interval([0.6, 0.8, 1.0, 0.8, 0.8], clip=(0.0, 1.0))
+    assert (m, lo, hi) == pytest.approx((0.8, 0.624402, 0.975598), abs=1e-6)
+    assert compare.t_interval([0.9, 1.0, 1.0], clip=(0.0, 1.0))[2] == 1.0            # clipped
+    assert math.isnan(compare.t_interval([0.5])[1])                                  # one seed: no interval
+    # Wilson, 8 of 10, z = 1.96: centre (0.8 + 0.192)/1.384 = 0.716763, half 0.226355
+    p, lo, hi = compare.wilson(8, 10)
+    assert (p, lo, hi) == pytest.approx((0.8, 0.490162, 0.943318), abs=1e-5)
+    assert compare.wilson(0, 10)[1] == 0.0 and compare.wilson(0, 10)[2] == pytest.approx(0.277533, abs=1e-5)
+
+
+def test_grid_is_data_and_filters_work(tmp_path):
+    full = compare.load_grid(quick=False)
+    cells = compare.build_cells(full, tmp_path)
+    assert len(full["seeds"]) >= 5
+    assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "planet"}
+    assert {"horizontal", "vertical", "diagonal", "antidiagonal", "random"} == {c["target"] for c in cells}
+    assert {c["variant"] for c in cells if c["method"] == "sac"} == {"points", "image", "abs_diff", "delta_gain"}
+    sel = compare.build_cells(full, tmp_path, methods=["sac"], targets=["random"], seeds=[3])
+    assert len(sel) == 4 and all(c["seed"] == 3 for c in sel)
+    # each seed seeds the learner, its evaluation starts, and the planners' starts and generators
+    c = sel[0]
+    assert c["argv"][c["argv"].index("--seed") + 1] == "3" and "eval_seed=13000" in c["argv"]
+    p = compare.build_cells(full, tmp_path, methods=["cem"], targets=["diagonal"], seeds=[2])[0]
+    assert p["argv"][p["argv"].index("--seed") + 1] == "12000"
+
+
+def test_quick_run_writes_a_well_formed_table(quick):
+    root, _ = quick
+    md = (root / "RESULTS.md").read_text()
+    assert "QUICK RUN" in md and "NOT results" in md
+    tables, header = parse_tables(md)
+    assert header == compare.COLUMNS
+    assert [r["method"] for r in tables["diagonal"]] == ["greedy", "cem", "sac"]
+    assert [r["method"] for r in tables["random"]] == ["greedy"]
+    for rows in tables.values():
+        for r in rows:
+            assert r["command"].startswith("`python -m benchmarks.compare --quick --methods ")
+            assert r["seeds × episodes"] == "1 × 2"
+            for col in (compare.COLUMNS[3], compare.COLUMNS[4]):
+                t_part, w_part = r[col].split("; ")
+                assert t_part.endswith("(n=1)")                       # one seed: no t-interval
+                p, lo, hi = map(float, re.findall(r"[\d.]+", w_part))
+                assert 0.0 <= lo <= p <= hi <= 1.0
+    sac = tables["diagonal"][2]
+    assert sac["env steps / cell"] == "64" and sac["sim evals / episode"] == "—"
+    assert float(tables["diagonal"][1]["sim evals / episode"]) > 0          # CEM simulates
+    merged = json.loads((root / "cells/greedy/default/random/seed0/results.json").read_text())
+    assert len(merged["episodes"]) == 2 and set(merged["episode_targets"]) <= set(compare.NAMED)
+    figs = sorted(p.name for p in (root / "fig").glob("*.png"))
+    assert "quick_curves_sac_diagonal.png" in figs and "quick_gallery_diagonal.png" in figs
+    assert "quick_planner_error_vs_evals_diagonal.png" in figs and "quick_success_vs_steps_diagonal.png" in figs
+
+
+def test_resume_skips_finished_cells(quick, capsys):
+    root, argv = quick
+    files = sorted((root / "cells").glob("*/*/*/seed*/results.json"))
+    assert len(files) == 4
+    before = {f: f.stat().st_mtime_ns for f in files}
+    logs = {f: f.read_text() for f in (root / "cells").glob("*/*/*/seed*/log.txt")}
+    capsys.readouterr()
+    assert compare.main(argv) == 0
+    assert "cells: 0 run, 4 already finished (skipped), 0 failed" in capsys.readouterr().out
+    assert {f: f.stat().st_mtime_ns for f in files} == before
+    assert {f: f.read_text() for f in logs} == logs                     # no entry point was started again
+    # an unfinished cell (results.json removed) is the only one that runs again
+    files[0].unlink()
+    cells = compare.build_cells(compare.load_grid(quick=True), root / "cells", ["greedy", "cem", "sac"], seeds=[0])
+    results = compare.run_cells(cells, jobs=1, progress=False)
+    assert sorted(r["status"] for r in results) == ["done", "skipped", "skipped", "skipped"]
+
+
+def test_ray_smoke(tmp_path):
+    ray = pytest.importorskip("ray")
+    grid = compare.load_grid(quick=True)
+    cells = compare.build_cells(grid, tmp_path, methods=["greedy"], targets=["diagonal"], seeds=[0])
+    try:
+        results = compare.run_cells(cells, ray_address="local", progress=False)
+    finally:
+        ray.shutdown()
+    assert [r["status"] for r in results] == ["done"]
+    assert (Path(cells[0]["dir"]) / "results.json").exists()
