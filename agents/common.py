@@ -373,8 +373,8 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
         for i in range(min(b, n_episodes - len(episodes))):
             episodes.append({"success": bool(success[i]), "steps": int(steps[i]),
                              "final_error": float(final_err[i]), "return": float(ret[i])})
-            ropes.append(final_pos[i].cpu())
-            targets.append(env.core.target[i].cpu())
+            ropes.append(final_pos[i].detach().cpu().clone())
+            targets.append(env.core.target[i].detach().cpu().clone())   # a copy: the next wave resets in place
     return {"success_rate": float(np.mean([e["success"] for e in episodes])),
             "mean_reward": float(np.mean([e["return"] for e in episodes])),
             "mean_length": float(np.mean([e["steps"] for e in episodes])),

@@ -121,3 +121,19 @@ def test_tensorboard_logging_when_installed(tmp_path):
     pytest.importorskip("tensorboard")
     assert sac.main(argv("sac", tmp_path, 128)) == 0
     assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+
+
+def test_evaluate_returns_each_episodes_own_final_rope_and_target():
+    """Regression: targets were views of the env's target tensor, overwritten in place by the next wave's reset."""
+    import diffdlo
+    from agents.common import evaluate
+    from diffdlo.envs import BatchedShapeControl
+
+    p = dataclasses.replace(diffdlo.load_params(), n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30,
+                            settle_check_every=10)
+    env = BatchedShapeControl(num_envs=3, target="random", max_steps=2, params=p)
+    g = torch.Generator().manual_seed(0)
+    res = evaluate(lambda obs, det: torch.rand(3, 3, generator=g), env, 9, seed=10_000)   # three waves
+    reported = torch.tensor([e["final_error"] for e in res["episodes"]])
+    recomputed = diffdlo.shape_error(res["ropes"].double(), res["targets"].double())
+    torch.testing.assert_close(recomputed.float(), reported, rtol=1e-4, atol=1e-6)
