@@ -290,6 +290,14 @@ class EpisodeStats:
 
 
 # ====================================================================== checkpoints and RNG
+def warn_if_large_buffer(rows: int, num_envs: int, obs: Any, limit: float = 4e9) -> None:
+    """Warn (stderr) when a replay buffer of rows x num_envs observations like ``obs`` would exceed ``limit`` bytes."""
+    obs_bytes = sum(v[0].numel() * v.element_size() for v in (obs.values() if isinstance(obs, dict) else [obs]))
+    if rows * num_envs * obs_bytes > limit:
+        print(f"warning: the replay buffer will hold {rows * num_envs * obs_bytes / 1e9:.1f} GB of observations; "
+              f"lower it with --set buffer_size=N (images: 64x64 pairs are 24.6 kB each)", file=sys.stderr)
+
+
 def rng_state() -> dict[str, Any]:
     s = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
     if torch.cuda.is_available():

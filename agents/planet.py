@@ -33,7 +33,7 @@ from tqdm import tqdm
 from agents.buffer import ReplayBuffer, as_dict, index_obs
 from agents.common import (CHECKPOINT, EpisodeStats, Logger, eval_row, evaluate, fmt_postfix, load_checkpoint,
                            make_env, make_params, rng_state, run_cli, save_checkpoint, seed_everything,
-                           set_rng_state, torch_threads, write_results)
+                           set_rng_state, torch_threads, warn_if_large_buffer, write_results)
 from agents.rssm import RSSM
 from diffdlo.rewards import shape_error
 from planners.cem import CEM
@@ -356,10 +356,7 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
     model = build_model(cfg, obs, action_dim)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
     rows = max(cfg.chunk_length + 2, cfg.buffer_size // cfg.num_envs)
-    obs_bytes = sum(v[0].numel() * v.element_size() for v in (obs.values() if isinstance(obs, dict) else [obs]))
-    if rows * cfg.num_envs * obs_bytes > 4e9:
-        print(f"warning: the replay buffer will hold {rows * cfg.num_envs * obs_bytes / 1e9:.1f} GB of observations; "
-              f"lower it with --set buffer_size=N (images: 64x64 pairs are 24.6 kB each)", file=sys.stderr)
+    warn_if_large_buffer(rows, cfg.num_envs, obs)
     rb = ReplayBuffer(rows, cfg.num_envs, obs, action_dim, device)
     stats = EpisodeStats()
     seed_steps = cfg.seed_episodes * env.core.max_steps

@@ -28,7 +28,7 @@ from tqdm import tqdm
 from agents.buffer import ReplayBuffer
 from agents.common import (CHECKPOINT, EpisodeStats, Logger, ObsEncoder, eval_row, evaluate, fmt_postfix,
                            load_checkpoint, make_env, make_params, mlp, rng_state, run_cli, save_checkpoint,
-                           seed_everything, set_rng_state, torch_threads, write_results)
+                           seed_everything, set_rng_state, torch_threads, warn_if_large_buffer, write_results)
 
 
 # ====================================================================== config (defaults: params/sac.yaml)
@@ -137,10 +137,7 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
     critic_opt = torch.optim.Adam(critic.parameters(), lr=cfg.lr)
     alpha_opt = torch.optim.Adam([log_alpha], lr=cfg.lr)
     rows = max(2, cfg.buffer_size // cfg.num_envs)
-    obs_bytes = sum(v[0].numel() * v.element_size() for v in (obs.values() if isinstance(obs, dict) else [obs]))
-    if rows * cfg.num_envs * obs_bytes > 4e9:
-        print(f"warning: the replay buffer will hold {rows * cfg.num_envs * obs_bytes / 1e9:.1f} GB of observations; "
-              f"lower it with --set buffer_size=N (images: 64x64 pairs are 24.6 kB each)", file=sys.stderr)
+    warn_if_large_buffer(rows, cfg.num_envs, obs)
     rb = ReplayBuffer(rows, cfg.num_envs, obs, action_dim, device)
     stats = EpisodeStats()
     step, n_updates, last_eval, last_ckpt, wall_before = 0, 0, 0, 0, 0.0

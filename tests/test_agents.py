@@ -137,3 +137,12 @@ def test_evaluate_returns_each_episodes_own_final_rope_and_target():
     reported = torch.tensor([e["final_error"] for e in res["episodes"]])
     recomputed = diffdlo.shape_error(res["ropes"].double(), res["targets"].double())
     torch.testing.assert_close(recomputed.float(), reported, rtol=1e-4, atol=1e-6)
+
+
+def test_large_replay_buffer_warning(capsys):
+    from agents.common import warn_if_large_buffer
+    obs = {"image": torch.zeros(4, 64, 64, 3, dtype=torch.uint8)}
+    warn_if_large_buffer(1000, 4, obs)                       # 49 MB: silent
+    assert capsys.readouterr().err == ""
+    warn_if_large_buffer(100_000, 16, obs)                   # 19.7 GB
+    assert "19.7 GB" in capsys.readouterr().err
