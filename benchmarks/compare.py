@@ -482,6 +482,14 @@ def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
     tag = "quick_" if grid["name"] == "quick" else ""
     note = " [QUICK RUN: format only]" if tag else ""
     written: list[Path] = []
+
+    def save(fig, name: str, dpi: int = 60) -> None:
+        fig.tight_layout()
+        path = figdir / f"{tag}{name}.png"
+        fig.savefig(path, dpi=dpi)
+        plt.close(fig)
+        written.append(path)
+
     by: dict[tuple, list[Path]] = {}
     for c, r in done:
         by.setdefault((c["kind"], c["method"], c["variant"], c["target"]), []).append(cell_dir(c))
@@ -506,11 +514,7 @@ def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
             for ax in list(axes.flat)[len(panels[:6]):]:
                 ax.axis("off")
             fig.suptitle(f"{method} on {target}: mean ± 95% t-CI over seeds{note}", fontsize=10)
-            fig.tight_layout()
-            p = figdir / f"{tag}curves_{method}_{target}.png"
-            fig.savefig(p, dpi=60)
-            plt.close(fig)
-            written.append(p)
+            save(fig, f"curves_{method}_{target}")
         # success vs env steps, all learners
         keys = [k for k in by if k[0] == "agent" and k[3] == target]
         if keys:
@@ -523,11 +527,7 @@ def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
             ax.set_ylabel("eval success @1 cm")
             ax.set_title(f"{target}: success vs env steps{note}", fontsize=9)
             ax.legend(fontsize=7)
-            fig.tight_layout()
-            p = figdir / f"{tag}success_vs_steps_{target}.png"
-            fig.savefig(p, dpi=60)
-            plt.close(fig)
-            written.append(p)
+            save(fig, f"success_vs_steps_{target}")
         # planners: error vs simulator evaluations (per-move errors; x = move k x sim evals per move)
         keys = [k for k in by if k[0] == "planner" and k[3] == target]
         if any(k[1] != "greedy" for k in keys):
@@ -553,11 +553,7 @@ def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
             ax.set_ylabel("mean shape error [cm]")
             ax.set_title(f"{target}: planners' error vs sim evals{note}", fontsize=9)
             ax.legend(fontsize=7)
-            fig.tight_layout()
-            p = figdir / f"{tag}planner_error_vs_evals_{target}.png"
-            fig.savefig(p, dpi=60)
-            plt.close(fig)
-            written.append(p)
+            save(fig, f"planner_error_vs_evals_{target}")
         # gallery: the final-shape pictures each entry point drew with diffdlo.render.plot_ropes (first seed)
         pics = []
         for k in sorted((k for k in by if k[3] == target), key=lambda k: list(grid["methods"]).index(k[1])):
@@ -576,11 +572,7 @@ def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
                 ax.imshow(plt.imread(path))
                 ax.set_title(title, fontsize=8)
             fig.suptitle(f"{target}: start and final shapes against the target (dashed), first seed{note}", fontsize=10)
-            fig.tight_layout()
-            p = figdir / f"{tag}gallery_{target}.png"
-            fig.savefig(p, dpi=70)
-            plt.close(fig)
-            written.append(p)
+            save(fig, f"gallery_{target}", dpi=70)
     return written
 
 
