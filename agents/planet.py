@@ -166,6 +166,23 @@ class LatentPlanner:
         self.prev_action = torch.zeros(self.b, self.A, device=cfg.device)
         self.last_steps = torch.full((self.b,), -1, dtype=torch.int64)
 
+    def state_dict(self) -> dict[str, Any]:
+        """Belief, last action and every rope's CEM (distribution, warm start, generator): a resumed run plans
+        exactly as the uninterrupted one."""
+        return {"state": None if self.state is None else {k: v.clone() for k, v in self.state.items()},
+                "prev_action": self.prev_action.clone(), "last_steps": self.last_steps.clone(),
+                "cems": [c.state_dict() for c in self.cems]}
+
+    def load_state_dict(self, s: dict[str, Any]) -> None:
+        if len(s["cems"]) != self.b:
+            raise ValueError(f"planner state for {len(s['cems'])} ropes, this planner has {self.b}")
+        dev = self.cfg.device
+        self.state = None if s["state"] is None else {k: v.to(dev) for k, v in s["state"].items()}
+        self.prev_action = s["prev_action"].to(dev)
+        self.last_steps = s["last_steps"].clone()
+        for c, cs in zip(self.cems, s["cems"]):
+            c.load_state_dict(cs)
+
     @torch.no_grad()
     def __call__(self, obs: Any, deterministic: bool = True) -> torch.Tensor:
         m, dev = self.model, self.cfg.device
@@ -376,13 +393,17 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
     logger = Logger(out, resume_step=step if resume else None)
     actor = LatentPlanner(model, cfg, env.core, cfg.seed)
     eval_planner = LatentPlanner(model, cfg, eval_env.core, cfg.eval_seed)
+    if resume:
+        actor.load_state_dict(ck["actor"])
+        eval_planner.load_state_dict(ck["eval_planner"])
 
     def checkpoint() -> None:
         save_checkpoint(out / CHECKPOINT, {
             "algo": "planet", "config": dataclasses.asdict(cfg), "model": model.state_dict(), "opt": opt.state_dict(),
             "buffer": rb.state_dict(), "env": env.state_dict(), "episode_stats": list(stats.buf), "step": step,
             "n_updates": n_updates, "last_eval": last_eval, "last_ckpt": last_ckpt, "last_train": last_train,
-            "last_success": last_success, "wall_s": wall_before + time.perf_counter() - t0, "rng": rng_state()})
+            "last_success": last_success, "actor": actor.state_dict(), "eval_planner": eval_planner.state_dict(),
+            "wall_s": wall_before + time.perf_counter() - t0, "rng": rng_state()})
 
     def evaluate_all() -> dict[str, Any]:
         model.eval()

@@ -55,6 +55,22 @@ class CEM:
         self.best: torch.Tensor | None = None
         self.best_cost = float("inf")
 
+    def state_dict(self) -> dict:
+        """The search distribution, the warm-start plan and the generator: restoring it makes the next
+        ``optimize`` bit-identical (checkpoints of learners that plan, agents/planet.py)."""
+        return {"mean": self.mean.clone(), "std": self.std.clone(), "probs": self.probs.clone(),
+                "best": None if self.best is None else self.best.clone(), "best_cost": self.best_cost,
+                "gen": self.gen.get_state()}
+
+    def load_state_dict(self, s: dict) -> None:
+        if s["mean"].shape != self.mean.shape or s["probs"].shape != self.probs.shape:
+            raise ValueError(f"CEM state of shape {tuple(s['mean'].shape)} does not fit this CEM "
+                             f"({tuple(self.mean.shape)}): horizon, action or node count differ")
+        self.mean, self.std, self.probs = s["mean"].clone(), s["std"].clone(), s["probs"].clone()
+        self.best = None if s["best"] is None else s["best"].clone()
+        self.best_cost = float(s["best_cost"])
+        self.gen.set_state(s["gen"])
+
     def shift(self) -> None:
         """Warm start for the next control step: drop the executed first step, append a prior step."""
         mean, std, probs = self._prior(1)

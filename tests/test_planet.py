@@ -224,3 +224,18 @@ def test_bad_plan_objective_is_refused(tmp_path):
         planet.train(tiny_cfg(plan_objective="nope"), tmp_path, progress=False)
     with pytest.raises(ValueError, match="points or distance"):
         planet.train(tiny_cfg(obs="image", plan_objective="shape"), tmp_path, progress=False)
+
+
+def test_resume_equals_uninterrupted(tmp_path):
+    """Killed right after its checkpoint, resumed: the same losses, evaluations and results as one run (the planners'
+    beliefs, warm starts and generators are in the checkpoint)."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    every = ["--eval-every", "64"]
+    assert planet.main(argv(a, 128, *every)) == 0
+    assert planet.main(argv(b, 64, *every)) == 0
+    assert planet.main(["--out", str(b), "--resume", "--total-steps", "128", "--no-progress"]) == 0
+    for name in ("train.csv", "eval.csv", "openloop.csv"):
+        assert (a / name).read_text() == (b / name).read_text(), name
+    ra, rb = json.loads((a / "results.json").read_text()), json.loads((b / "results.json").read_text())
+    assert ra["episodes"] == rb["episodes"] and rb["env_steps"] == 128
+    assert len([r for r in read_csv(b / "train.csv") if float(r["step"]) > 64]) > 0
