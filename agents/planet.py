@@ -36,7 +36,7 @@ from agents.common import (CHECKPOINT, EpisodeStats, Logger, eval_row, evaluate,
                            set_rng_state, torch_threads, warn_if_large_buffer, write_results)
 from agents.rssm import RSSM
 from diffdlo.rewards import shape_error
-from planners.cem import CEM
+from planners.cem import CEM, optimize_together
 
 
 # ====================================================================== config (defaults: params/planet.yaml)
@@ -128,25 +128,34 @@ def decoded_positions(model: RSSM, feat: torch.Tensor, obs_type: str, target: to
 
 
 class LatentObjective:
-    """cost(actions (C, H, A)) -> (C,) from one latent state (1, ...) through the prior mean."""
+    """cost(actions) from latent states through the prior mean: R ropes' states (R, ...) and candidates
+    (R, C, H, A) -> (R, C), all in one batched model call; or one rope's state (1, ...) and (C, H, A) -> (C,).
+    ``target`` (R, N, 2) or (N, 2): the ropes' targets for the "shape" cost."""
 
     def __init__(self, model: RSSM, state: dict[str, torch.Tensor], kind: str = "reward", obs_type: str = "points",
                  target: torch.Tensor | None = None):
-        self.model, self.state, self.kind, self.obs_type, self.target = model, state, kind, obs_type, target
+        self.model, self.state, self.kind, self.obs_type = model, state, kind, obs_type
+        self.target = None if target is None else target.reshape(-1, *target.shape[-2:])
         self.calls = 0
 
     @torch.no_grad()
     def __call__(self, actions: torch.Tensor) -> torch.Tensor:
-        c = actions.shape[0]
+        single = actions.dim() == 3
+        x = actions[None] if single else actions
+        r, c = x.shape[:2]
         dev = self.state["h"].device
-        st = {k: v.expand(c, *v.shape[1:]) for k, v in self.state.items()}
-        traj = self.model.imagine(st, actions.to(dev, torch.float32), sample=False)
-        feat = torch.stack([RSSM.feature(s) for s in traj], 1)                  # (C, H, F)
+        st = {k: v[:, None].expand(r, c, *v.shape[1:]).reshape(r * c, *v.shape[1:]) for k, v in self.state.items()}
+        traj = self.model.imagine(st, x.reshape(r * c, *x.shape[2:]).to(dev, torch.float32), sample=False)
+        feat = torch.stack([RSSM.feature(s) for s in traj], 1)                  # (R C, H, F)
         self.calls += 1
         if self.kind == "reward":
-            return -self.model.reward(feat).sum(1)
-        pos = decoded_positions(self.model, feat[:, -1], self.obs_type, self.target)
-        return shape_error(pos, self.target.expand_as(pos))
+            cost = -self.model.reward(feat).sum(1)
+        else:
+            tgt = self.target[:, None].expand(r, c, *self.target.shape[1:]).reshape(r * c, *self.target.shape[1:])
+            pos = decoded_positions(self.model, feat[:, -1], self.obs_type, tgt)
+            cost = shape_error(pos, tgt)
+        cost = cost.view(r, c)
+        return cost[0] if single else cost
 
 
 class LatentPlanner:
@@ -208,13 +217,15 @@ class LatentPlanner:
         self.state = post
         action = self.prev_action.clone()
         target = self.core.target.float() if self.cfg.plan_objective == "shape" else None
-        for i in moved.nonzero().flatten().tolist():
-            st = {k: v[i:i + 1] for k, v in post.items()}
-            obj = LatentObjective(m, st, self.cfg.plan_objective, self.cfg.obs,
-                                  None if target is None else target[i])
-            best, _ = self.cems[i].optimize(obj)
-            self.cems[i].shift()
-            action[i] = best[0].to(dev)
+        rows = moved.nonzero().flatten().tolist()
+        if rows:                                   # every moving rope's CEM in lockstep, one model call per iteration
+            idx = torch.tensor(rows, device=dev)
+            obj = LatentObjective(m, {k: v[idx] for k, v in post.items()}, self.cfg.plan_objective, self.cfg.obs,
+                                  None if target is None else target[idx])
+            bests = optimize_together([self.cems[i] for i in rows], obj)
+            for i, (best, _) in zip(rows, bests):
+                self.cems[i].shift()
+                action[i] = best[0].to(dev)
         if not deterministic and self.cfg.explore_noise > 0:
             noise = self.cfg.explore_noise * torch.randn(self.b, self.A, device=dev)
             action = torch.where(moved.to(dev)[:, None], (action + noise).clamp(0.0, 1.0), action)

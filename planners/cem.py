@@ -123,29 +123,57 @@ class CEM:
                     self.std[t, c] = sel.std(0, unbiased=False).clamp_min(self.min_std * (self.high - self.low))
 
     # ------------------------------------------------------------------ optimisation
+    def _ask(self, it: int, n_kept: int) -> torch.Tensor:
+        x = self._sample(self.candidates - n_kept)
+        if it == 0 and self.best is not None:
+            x[0] = self.best                                        # warm start: re-evaluate the shifted plan
+        return x
+
+    def _tell(self, pop, cost, x: torch.Tensor, c: torch.Tensor):
+        c = c.detach().to("cpu", self.dtype)
+        if not bool(torch.isfinite(c).all()):
+            raise FloatingPointError(f"objective returned non-finite costs: {c[~torch.isfinite(c)][:5].tolist()}")
+        pop = x if pop is None else torch.cat([pop, x])
+        cost = c if cost is None else torch.cat([cost, c])
+        order = cost.argsort()[: self.elites]
+        pop, cost = pop[order], cost[order]                          # the elites survive into the next iteration
+        if float(cost[0]) < self.best_cost:
+            self.best, self.best_cost = pop[0].clone(), float(cost[0])
+        self._refit(pop)
+        self.history.append({"best": self.best_cost, "elite_mean": float(cost.mean())})
+        return pop, cost
+
     @torch.no_grad()
     def optimize(self, objective: Callable[[torch.Tensor], torch.Tensor]) -> tuple[torch.Tensor, float]:
         """Run the iterations on ``objective``; returns the best sequence (H, A) and its cost. ``history`` gets one
         entry per iteration: the best cost so far and the mean elite cost."""
-        self.history = []
-        pop = cost = None
-        for it in range(self.iterations):
-            n = self.candidates - (0 if pop is None else pop.shape[0])
-            x = self._sample(n)
-            if it == 0 and self.best is not None:
-                x[0] = self.best                                    # warm start: re-evaluate the shifted plan
-            c = objective(x).detach().to("cpu", self.dtype)
-            if not bool(torch.isfinite(c).all()):
-                raise FloatingPointError(f"objective returned non-finite costs: {c[~torch.isfinite(c)][:5].tolist()}")
-            pop = x if pop is None else torch.cat([pop, x])
-            cost = c if cost is None else torch.cat([cost, c])
-            order = cost.argsort()[: self.elites]
-            pop, cost = pop[order], cost[order]                      # the elites survive into the next iteration
-            if float(cost[0]) < self.best_cost:
-                self.best, self.best_cost = pop[0].clone(), float(cost[0])
-            self._refit(pop)
-            self.history.append({"best": self.best_cost, "elite_mean": float(cost.mean())})
-        return self.best.clone(), self.best_cost
+        return optimize_together([self], lambda x: objective(x[0])[None])[0]
+
+
+@torch.no_grad()
+def optimize_together(cems: list[CEM], objective: Callable[[torch.Tensor], torch.Tensor]
+                      ) -> list[tuple[torch.Tensor, float]]:
+    """Run several CEMs (one per rope, say) in lockstep: one ``objective(x (R, n, H, A)) -> (R, n)`` call per
+    iteration evaluates every CEM's candidates together (one batched model call instead of R). Each CEM samples with
+    its own generator and refits on its own costs, so every CEM does exactly what ``cem.optimize`` alone would do on
+    the same costs. The CEMs must share horizon, action size, candidates, elites and iterations."""
+    shape = {(c.H, c.A, c.candidates, c.elites, c.iterations) for c in cems}
+    if len(shape) != 1:
+        raise ValueError(f"optimize_together needs CEMs of one shape (H, A, candidates, elites, iterations), "
+                         f"got {sorted(shape)}")
+    pops: list = [None] * len(cems)
+    costs: list = [None] * len(cems)
+    for c in cems:
+        c.history = []
+    for it in range(cems[0].iterations):
+        xs = [c._ask(it, 0 if pop is None else pop.shape[0]) for c, pop in zip(cems, pops)]
+        cs = objective(torch.stack(xs))
+        if tuple(cs.shape) != (len(cems), xs[0].shape[0]):
+            raise ValueError(f"objective must return costs of shape {(len(cems), xs[0].shape[0])}, "
+                             f"got {tuple(cs.shape)}")
+        for i, c in enumerate(cems):
+            pops[i], costs[i] = c._tell(pops[i], costs[i], xs[i], cs[i])
+    return [(c.best.clone(), c.best_cost) for c in cems]
 
 
 class CEMPlanner:
