@@ -77,6 +77,29 @@ def test_cem_state_dict_restores_the_next_optimisation_exactly():
         CEM(3, 4, candidates=40, elites=5, discrete={0: 5}).load_state_dict(saved)
 
 
+def test_optimize_together_equals_each_cem_alone():
+    goals = torch.tensor([[0.2, 0.7], [0.9, 0.1], [0.5, 0.5]], dtype=torch.float64)
+
+    def one(x, g):                                   # (n, H, A) -> (n,)
+        return ((x[..., 1:] - g) ** 2).sum((-1, -2)) + (x[..., 0] - g[0]).abs().sum(-1)
+
+    def make(seed):
+        return CEM(3, 2, candidates=30, elites=4, iterations=3, discrete={0: 4},
+                   generator=torch.Generator().manual_seed(seed))
+    alone = [make(i).optimize(lambda x, g=g: one(x, g)) for i, g in enumerate(goals)]
+    calls = []
+
+    def batched(x):                                  # (R, n, H, A) -> (R, n)
+        calls.append(x.shape)
+        return torch.stack([one(x[r], goals[r]) for r in range(x.shape[0])])
+    together = cem_mod.optimize_together([make(i) for i in range(3)], batched)
+    for (b1, c1), (b2, c2) in zip(alone, together):
+        assert torch.equal(b1, b2) and c1 == c2
+    assert len(calls) == 3 and calls[0][:2] == (3, 30) and calls[1][:2] == (3, 26)
+    with pytest.raises(ValueError, match="one shape"):
+        cem_mod.optimize_together([make(0), CEM(3, 3, candidates=30, elites=4, iterations=3)], batched)
+
+
 def test_cem_improves_on_fixed_problem():
     env = _start(1, seed=3)
     obj = SimObjective(env.sim, env.pos[0], env.target[0])
