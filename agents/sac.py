@@ -107,7 +107,10 @@ class Critic(nn.Module):
         self.q2 = mlp(self.enc.out_dim + action_dim, cfg.hidden, 1)
 
     def forward(self, obs: Any, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        x = torch.cat([self.enc(obs), action], dim=1)
+        return self.heads(self.enc(obs), action)
+
+    def heads(self, features: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = torch.cat([features, action], dim=1)
         return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
 
 
@@ -213,7 +216,9 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
                 critic_opt.step()
 
                 a_pi, logp = actor(b["obs"])
-                q1_pi, q2_pi = critic(b["obs"], a_pi)
+                with torch.no_grad():   # the actor loss needs dQ/da only: no backward through the critic's encoder
+                    critic_features = critic.enc(b["obs"])
+                q1_pi, q2_pi = critic.heads(critic_features, a_pi)
                 actor_loss = (alpha * logp - torch.min(q1_pi, q2_pi)).mean()
                 actor_opt.zero_grad()
                 actor_loss.backward()
