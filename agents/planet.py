@@ -82,8 +82,8 @@ class PlaNetConfig:
     batch_size: int = 50
     chunk_length: int = 16
     buffer_size: int = 1_000_000
-    seed_episodes: int = 5
-    train_every: int = 500
+    seed_episodes: int = 40
+    train_every: int = 250
     updates_per_train: int = 100
     # planning
     horizon: int = 3

@@ -61,9 +61,10 @@ def test_grid_is_data_and_filters_work(tmp_path):
     assert len(full["seeds"]) >= 5
     assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "planet"}
     assert {"horizontal", "vertical", "diagonal", "antidiagonal", "random"} == {c["target"] for c in cells}
-    assert {c["variant"] for c in cells if c["method"] == "sac"} == {"points", "image", "abs_diff", "delta_gain"}
+    assert {c["variant"] for c in cells if c["method"] == "sac"} == {"points", "points_utd1", "image", "abs_diff",
+                                                                          "delta_gain"}
     sel = compare.build_cells(full, tmp_path, methods=["sac"], targets=["random"], seeds=[3])
-    assert len(sel) == 4 and all(c["seed"] == 3 for c in sel)
+    assert len(sel) == 5 and all(c["seed"] == 3 for c in sel)
     # each seed seeds the learner, its evaluation starts, and the planners' starts and generators
     c = sel[0]
     assert c["argv"][c["argv"].index("--seed") + 1] == "3" and "eval_seed=13000" in c["argv"]
