@@ -239,3 +239,12 @@ def test_resume_equals_uninterrupted(tmp_path):
     ra, rb = json.loads((a / "results.json").read_text()), json.loads((b / "results.json").read_text())
     assert ra["episodes"] == rb["episodes"] and rb["env_steps"] == 128
     assert len([r for r in read_csv(b / "train.csv") if float(r["step"]) > 64]) > 0
+
+
+def test_world_model_benchmark_runs(capsys):
+    from benchmarks import planet_model
+    assert planet_model.main(["--updates", "2", "--moves", "12", "--envs", "3", "--set", TINY, "--set", "batch_size=4",
+                              "--set", "chunk_length=4", "--set", "openloop_episodes=3", "--set", "deter=8",
+                              "--set", "stoch=2", "--set", "hidden=8", "--set", "embed=8"]) == 0
+    out = capsys.readouterr().out
+    assert "2 updates" in out and "k=10:" in out
