@@ -397,6 +397,15 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
               "**Env steps**: learners: training env transitions (the budget); planners: moves executed over the "
               "cell's episodes. **Sim evals**: rope-moves simulated by a planner per episode (learners: none). "
               "**Wall**: seconds per cell (planners: and planning seconds per move).", ""]
+    missing: dict[str, list[str]] = {}
+    for c, r in loaded:
+        if r is None:
+            missing.setdefault(f"{c['method']}/{c['variant']}/{c['target']}", []).append(str(c["seed"]))
+    if missing and not quick:
+        lines += [f"> **Partial comparison: {len(cells) - len(done)} of {len(cells)} cells not run yet** "
+                  "(method/variant/target: seeds missing): "
+                  + "; ".join(f"{k}: {' '.join(v)}" for k, v in missing.items())
+                  + ". Rows below aggregate the finished seeds only; absent rows were not run.", ""]
     targets = [t for t in grid["targets"]]
     table: dict[str, list[dict[str, Any]]] = {}
     for target in targets:

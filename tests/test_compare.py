@@ -127,3 +127,14 @@ def test_ray_smoke(tmp_path):
         ray.shutdown()
     assert [r["status"] for r in results] == ["done"]
     assert (Path(cells[0]["dir"]) / "results.json").exists()
+
+
+def test_partial_report_names_the_cells_not_run(quick, tmp_path):
+    root, _ = quick                                 # the quick cells' paths are also cells of the full grid
+    full = compare.load_grid(quick=False)
+    compare.write_report(full, root / "cells", tmp_path / "R.md", None)
+    md = (tmp_path / "R.md").read_text()
+    n = len(compare.build_cells(full, root / "cells"))
+    assert f"4 of {n} cells finished" in md
+    assert f"**Partial comparison: {n - 4} of {n} cells not run yet**" in md
+    assert "ppo/points/random: 0 1 2 3 4" in md and "greedy/default/diagonal: 1 2 3 4;" in md
