@@ -474,12 +474,15 @@ def _series(dirs: list[Path], group: str, key: str):
     return x, ys
 
 
-def _band(ax, x, ys, label):
+def _band(ax, x, ys, label, clip: tuple[float, float] | None = None):
     m = ys.mean(0)
     line, = ax.plot(x, m, marker=".", ms=3, label=f"{label} (n={len(ys)})")
     if len(ys) > 1:
         half = t_quantile(0.975, len(ys) - 1) * ys.std(0, ddof=1) / math.sqrt(len(ys))
-        ax.fill_between(x, m - half, m + half, color=line.get_color(), alpha=0.2)
+        lo, hi = m - half, m + half
+        if clip is not None:                       # as the table's intervals: a rate's band stays in [0, 1]
+            lo, hi = np.clip(lo, *clip), np.clip(hi, *clip)
+        ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
 
 
 def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
@@ -531,7 +534,7 @@ def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
             for k in keys:
                 s = _series(by[k], "eval", "success_rate")
                 if s is not None:
-                    _band(ax, *s, label=f"{k[1]}/{k[2]}")
+                    _band(ax, *s, label=f"{k[1]}/{k[2]}", clip=(0.0, 1.0))
             ax.set_xlabel("env steps")
             ax.set_ylabel("eval success @1 cm")
             ax.set_title(f"{target}: success vs env steps{note}", fontsize=9)
