@@ -6,6 +6,7 @@ open-loop node error after 1, 5 and 10 moves next to the "nothing moves" baselin
 
     python benchmarks/planet_model.py --updates 2000            # ~5 min on one CPU core
     python benchmarks/planet_model.py --updates 4000 --set obs_std=0.01
+    python benchmarks/planet_model.py --plan-time --envs 16     # seconds per planned move of 16 ropes
 
 Used to size ``seed_episodes`` in params/planet.yaml: trained on random moves only, the model beats the baseline
 after ~1000 updates; trained in the loop on 500 random and 9500 planner-chosen moves (the old default), it did not.
@@ -34,6 +35,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--moves", type=int, default=300, help="random moves per rope (episodes end after max_steps)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="PlaNet config key")
+    ap.add_argument("--plan-time", action="store_true",
+                    help="only time the latent planner: one planned move of --envs ropes (untrained model)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     bad = [item for item in args.set if "=" not in item]
@@ -45,6 +48,14 @@ def main(argv: list[str] | None = None) -> int:
     env = make_env(cfg, args.envs)
     obs = env.reset(seed=args.seed)
     model = planet.build_model(cfg, obs, env.core.action_dim)
+    if args.plan_time:
+        planner = planet.LatentPlanner(model, cfg, env.core, args.seed)
+        for i in range(3):
+            t0 = time.perf_counter()
+            action = planner(obs, deterministic=False)
+            print(f"planned move {i} of {args.envs} ropes: {time.perf_counter() - t0:.2f} s")
+            obs, *_ = env.step(action)
+        return 0
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
     rb = ReplayBuffer(args.moves + 2, args.envs, obs, env.core.action_dim, "cpu")
     g = torch.Generator().manual_seed(args.seed)

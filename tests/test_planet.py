@@ -248,3 +248,7 @@ def test_world_model_benchmark_runs(capsys):
                               "--set", "stoch=2", "--set", "hidden=8", "--set", "embed=8"]) == 0
     out = capsys.readouterr().out
     assert "2 updates" in out and "k=10:" in out
+    assert planet_model.main(["--plan-time", "--envs", "2", "--set", TINY, "--set", "candidates=8",
+                              "--set", "elites=2", "--set", "iterations=1", "--set", "deter=8", "--set", "stoch=2",
+                              "--set", "hidden=8", "--set", "embed=8"]) == 0
+    assert capsys.readouterr().out.count("planned move") == 3
