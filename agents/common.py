@@ -83,11 +83,15 @@ class TrainEnv:
     acts on next (the first observation of a new episode where one ended) and ``final_obs`` the observation the
     step produced (the true last observation of an ended episode, used by bootstraps). No step is wasted, unlike
     gymnasium's NEXT_STEP autoreset. ``start``: an optional fixed (N, 2) start shape placed after every reset
-    (custom easy tasks); otherwise the env's random start.
+    (custom easy tasks); otherwise the env's random start. ``device``: where the learner wants observations,
+    rewards and flags (default: the simulator's device); actions are moved to the simulator's device, so the rope
+    can be simulated on the CPU (fused kernel) while the networks learn on a GPU, as SB3 does.
     """
 
-    def __init__(self, core: BatchedShapeControl, start: torch.Tensor | None = None):
+    def __init__(self, core: BatchedShapeControl, start: torch.Tensor | None = None,
+                 device: str | torch.device | None = None):
         self.core, self.num_envs = core, core.num_envs
+        self.device = core.device if device is None else torch.device(device)
         self.start = None if start is None else torch.as_tensor(start, device=core.device, dtype=core.dtype)
         self.ep_return = torch.zeros(self.num_envs, dtype=torch.float64)
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
@@ -103,10 +107,20 @@ class TrainEnv:
         self.core.reset(seed=seed, mask=m)
         self._place_start(m)
         self.ep_return[m], self.ep_length[m] = 0.0, 0
-        return self.core.observe()
+        return self.observe()
+
+    def to_learner(self, x: Any) -> Any:
+        """A tensor or a dict of tensors on the learner's device."""
+        if isinstance(x, dict):
+            return {k: v.to(self.device) for k, v in x.items()}
+        return x.to(self.device)
+
+    def observe(self) -> Any:
+        return self.to_learner(self.core.observe())
 
     def step(self, actions: torch.Tensor, mask: torch.Tensor | None = None):
-        final_obs, reward, term, trunc, info = self.core.step(actions, mask=mask)
+        final_obs, reward, term, trunc, info = self.core.step(actions.to(self.core.device), mask=mask)
+        final_obs, reward, term, trunc = (self.to_learner(x) for x in (final_obs, reward, term, trunc))
         active = torch.ones(self.num_envs, dtype=torch.bool) if mask is None else mask.cpu()
         self.ep_return += reward.double().cpu() * active
         self.ep_length += active.long()
@@ -144,13 +158,13 @@ def make_env(cfg, num_envs: int) -> TrainEnv:
     params = make_params(cfg)
     core = BatchedShapeControl(num_envs=num_envs, target=cfg.target, obs_type=cfg.obs, action_type=cfg.action,
                                reward=cfg.reward, max_steps=cfg.max_steps, success_tol=cfg.success_tol, params=params,
-                               image_size=cfg.image_size, device=cfg.device)
+                               image_size=cfg.image_size, device=cfg.env_device or cfg.device)
     start = None
     if cfg.start:
         start = torch.as_tensor(np.load(cfg.start) if isinstance(cfg.start, str) else np.asarray(cfg.start))
         if tuple(start.shape) != (params.n_nodes, 2):
             raise ValueError(f"start shape must be ({params.n_nodes}, 2), got {tuple(start.shape)}")
-    return TrainEnv(core, start)
+    return TrainEnv(core, start, device=cfg.device)
 
 
 # ====================================================================== networks
@@ -370,7 +384,8 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
         final_pos = env.core.pos.clone()
         while bool(active.any()):
             actions = policy(obs, deterministic)
-            obs, reward, term, trunc, info = env.core.step(actions, mask=active)
+            obs, reward, term, trunc, info = env.core.step(actions.to(env.core.device), mask=active)
+            obs = env.to_learner(obs)
             ret += reward.double().cpu() * active
             steps += active.long()
             done = (term | trunc).cpu() & active

@@ -57,7 +57,8 @@ class PlaNetConfig:
     total_steps: int = 100_000
     num_envs: int = 16
     seed: int = 0
-    device: str = "cpu"
+    device: str = "cpu"                   # networks and buffer
+    env_device: str = ""                  # the simulator ("": same as device; "cpu" with device "cuda": fused CPU kernel)
     threads: int = 1
     eval_every: int = 10_000
     eval_episodes: int = 20
@@ -216,7 +217,7 @@ class LatentPlanner:
             post = {k: torch.where(keep[:, None], self.state[k], post[k]) for k in post}
         self.state = post
         action = self.prev_action.clone()
-        target = self.core.target.float() if self.cfg.plan_objective == "shape" else None
+        target = self.core.target.to(dev).float() if self.cfg.plan_objective == "shape" else None
         rows = moved.nonzero().flatten().tolist()
         if rows:                                   # every moving rope's CEM in lockstep, one model call per iteration
             idx = torch.tensor(rows, device=dev)
@@ -274,7 +275,8 @@ def open_loop_eval(model: RSSM, cfg: PlaNetConfig, n_episodes: int | None = None
     n = n_episodes or cfg.openloop_episodes
     context = cfg.openloop_context if context is None else context
     k_max = max(horizons)
-    env = make_env(dataclasses.replace(cfg, max_steps=max(context + k_max + 1, cfg.max_steps or 0)), n)
+    env = make_env(dataclasses.replace(cfg, max_steps=max(context + k_max + 1, cfg.max_steps or 0), env_device=cfg.device),
+                   n)
     obs = env.reset(seed=cfg.openloop_seed if seed is None else seed)
     g = torch.Generator().manual_seed(cfg.openloop_seed if seed is None else seed)
     dev = cfg.device
@@ -396,7 +398,7 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
         opt.load_state_dict(ck["opt"])
         rb.load_state_dict(ck["buffer"])
         env.load_state_dict(ck["env"])
-        obs = env.core.observe()
+        obs = env.observe()
         stats.buf.extend(ck["episode_stats"])
         step, n_updates, last_eval, last_ckpt = ck["step"], ck["n_updates"], ck["last_eval"], ck["last_ckpt"]
         last_train, last_success, wall_before = ck["last_train"], ck["last_success"], ck["wall_s"]

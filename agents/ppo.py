@@ -51,7 +51,8 @@ class PPOConfig:
     total_steps: int = 1_000_000
     num_envs: int = 16
     seed: int = 0
-    device: str = "cpu"
+    device: str = "cpu"                   # networks and buffer
+    env_device: str = ""                  # the simulator ("": same as device; "cpu" with device "cuda": fused CPU kernel)
     threads: int = 1
     eval_every: int = 20_000
     eval_episodes: int = 20
@@ -139,7 +140,7 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
         opt.load_state_dict(ck["opt"])
         rb.load_state_dict(ck["buffer"])
         env.load_state_dict(ck["env"])
-        obs = env.core.observe()
+        obs = env.observe()
         stats.buf.extend(ck["episode_stats"])
         step, n_updates, last_eval, last_ckpt = ck["step"], ck["n_updates"], ck["last_eval"], ck["last_ckpt"]
         rollouts, last_success, wall_before = ck["rollouts"], ck["last_success"], ck["wall_s"]

@@ -49,7 +49,8 @@ class SACConfig:
     total_steps: int = 100_000            # env transitions, all envs together
     num_envs: int = 16
     seed: int = 0
-    device: str = "cpu"
+    device: str = "cpu"                   # networks and buffer
+    env_device: str = ""                  # the simulator ("": same as device; "cpu" with device "cuda": fused CPU kernel)
     threads: int = 1                      # torch CPU threads during training (restored afterwards)
     eval_every: int = 5_000
     eval_episodes: int = 20
@@ -158,7 +159,7 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
         alpha_opt.load_state_dict(ck["alpha_opt"])
         rb.load_state_dict(ck["buffer"])
         env.load_state_dict(ck["env"])
-        obs = env.core.observe()
+        obs = env.observe()
         stats.buf.extend(ck["episode_stats"])
         step, n_updates, last_eval, last_ckpt = ck["step"], ck["n_updates"], ck["last_eval"], ck["last_ckpt"]
         last_success, wall_before = ck["last_success"], ck["wall_s"]

@@ -27,6 +27,7 @@ import argparse
 import json
 import math
 import os
+import platform
 import shlex
 import subprocess
 import sys
@@ -152,8 +153,11 @@ def random_targets(seed0: int, n: int) -> list[str]:
 
 
 def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=None, targets=None,
-                seeds=None) -> list[dict[str, Any]]:
-    """Every (method, variant, target, seed) cell of the grid after the filters, with its commands."""
+                seeds=None, learner_device: str | None = None) -> list[dict[str, Any]]:
+    """Every (method, variant, target, seed) cell of the grid after the filters, with its commands.
+
+    ``learner_device`` (e.g. "cuda"): learners put their networks and buffers there and simulate on the CPU
+    (``--set device=... --set env_device=cpu``); planners are unchanged."""
     out = Path(out)
     cells = []
     for method, spec in grid["methods"].items():
@@ -186,6 +190,9 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
                                         *_flags(v.get("args")), "--eval-episodes", str(grid["episodes"]),
                                         "--set", f"eval_seed={eval_seed}", *sets, "--threads", "1", "--no-progress",
                                         "--out", str(d)]
+                        if learner_device:
+                            cell["argv"][-2:-2] = ["--set", f"device={learner_device}", "--set", "env_device=cpu"]
+                            cell["learner_device"] = learner_device
                         cell["total_steps"] = (v.get("args") or {}).get("total-steps")
                     cells.append(cell)
     return cells
@@ -205,6 +212,16 @@ def command_line(cell: dict[str, Any]) -> str:
 def cell_dir(cell: dict[str, Any], sub: str | Path | None = None) -> Path:
     d = Path(cell.get("cwd", ".")) / (cell["dir"] if sub is None else sub)
     return d
+
+
+def machine_info(cell: dict[str, Any]) -> dict[str, Any]:
+    """Where a cell runs (its wall time depends on it): host, CPU count, and the GPU a learner uses."""
+    info: dict[str, Any] = {"host": platform.node(), "cpus": os.cpu_count()}
+    dev = cell.get("learner_device")
+    if dev and dev.startswith("cuda"):
+        import torch
+        info["gpu"] = torch.cuda.get_device_name(torch.device(dev)) if torch.cuda.is_available() else "unavailable"
+    return info
 
 
 def is_done(cell: dict[str, Any]) -> bool:
@@ -258,7 +275,8 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
                 if not (sub_out / "results.json").exists():
                     _call([*head, "--target", t, *sub[2:]], log, cell["cwd"])
                 parts.append(json.loads((sub_out / "results.json").read_text()))
-            (d / "cell.json").write_text(json.dumps(dict(cell, command=command_line(cell)), indent=2))
+            (d / "cell.json").write_text(json.dumps(dict(cell, command=command_line(cell), machine=machine_info(cell)),
+                                                    indent=2))
             (d / "results.json").write_text(json.dumps(_merge(parts, cell), indent=2))
         else:
             argv = cell["argv"]
@@ -266,7 +284,8 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
                 argv = ["-m", argv[1], "--out", str(d), "--resume", "--no-progress"]
                 if cell.get("total_steps"):
                     argv += ["--total-steps", str(cell["total_steps"])]
-            (d / "cell.json").write_text(json.dumps(dict(cell, command=command_line(cell)), indent=2))
+            (d / "cell.json").write_text(json.dumps(dict(cell, command=command_line(cell), machine=machine_info(cell)),
+                                                    indent=2))
             _call(argv, log, cell["cwd"])
         return {"cell": cell, "status": "done", "wall_s": time.perf_counter() - t0}
     except Exception as exc:  # noqa: BLE001 - a failed cell must not stop the others; it reruns next time
@@ -319,7 +338,10 @@ def _load(cell: dict[str, Any]) -> dict[str, Any] | None:
         return None
     res = json.loads(p.read_text())
     cj = cell_dir(cell) / "cell.json"
-    res["_command"] = json.loads(cj.read_text())["command"] if cj.exists() else command_line(cell)
+    meta = json.loads(cj.read_text()) if cj.exists() else {}
+    res["_command"] = meta.get("command") or command_line(cell)
+    res["_machine"] = meta.get("machine")
+    res["_learner_device"] = meta.get("learner_device")
     return res
 
 
@@ -361,10 +383,19 @@ COLUMNS = ["method", "variant", "seeds × episodes", "success @1 cm: t-CI over s
            "command"]
 
 
-def harness_command(grid: str, out: str, method: str, variant: str, target: str, seeds: list[int]) -> str:
+def harness_command(grid: str, out: str, method: str, variant: str, target: str, seeds: list[int],
+                    learner_device: str | None = None) -> str:
     q = ["--quick"] if grid == "quick" else []
+    dev = ["--learner-device", learner_device] if learner_device else []
     return shlex.join(["python", "-m", "benchmarks.compare", *q, "--methods", method, "--variants", variant,
-                       "--targets", target, "--seeds", *map(str, seeds), "--out", out])
+                       "--targets", target, "--seeds", *map(str, seeds), "--out", out, *dev])
+
+
+def machine_label(res: dict[str, Any]) -> str:
+    m = res.get("_machine")
+    if not m:
+        return "machine not recorded"
+    return f"{m.get('cpus')}-core CPU" + (f" + {m['gpu']}" if m.get("gpu") else "")
 
 
 def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures: Path | str | None,
@@ -420,8 +451,13 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
         for (method, variant), items in groups.items():
             st = row_stats([r for _, r in items])
             seeds = [c["seed"] for c, _ in items]
-            cmd = harness_command(grid["name"], str(out), method, variant, target, seeds)
+            devices = sorted({r.get("_learner_device") or "" for _, r in items})
+            row_groups = [(d, [c["seed"] for c, r in items if (r.get("_learner_device") or "") == d]) for d in devices]
+            cmd = " ; ".join(harness_command(grid["name"], str(out), method, variant, target, sd, d or None)
+                             for d, sd in row_groups)
             w = f"{st['wall']:.1f}" + (f" ({st['s_per_move']:.2f})" if st["s_per_move"] is not None else "")
+            if any(devices):
+                w += " on " + ", ".join(sorted({machine_label(r) for _, r in items}))
             moves = "—" if not st["moves"][1] else f"{st['moves'][0]:.1f}; {st['moves'][1]}"
             if not math.isnan(st["moves2"]):
                 moves += f" (to 2 cm: {st['moves2']:.1f})"
@@ -431,7 +467,8 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
                          "—" if st["sim_evals"] is None else f"{st['sim_evals']:.0f}", w, f"`{cmd}`"]
             lines.append("| " + " | ".join(cells_txt) + " |")
             table.setdefault(target, []).append(dict(zip(COLUMNS, cells_txt), stats=st))
-            details += [f"- {method}/{variant} seed {c['seed']}: `{r['_command']}`" for c, r in items]
+            details += [f"- {method}/{variant} seed {c['seed']}: `{r['_command']}` ({machine_label(r)})"
+                        for c, r in items]
         lines += ["", "<details><summary>Exact per-seed commands (what the harness ran)</summary>", "", *details, "",
                   "</details>", ""]
     if figures is not None:
@@ -607,6 +644,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--figures", default="docs/figures", help="figure folder ('' for none)")
     ap.add_argument("--list", action="store_true", help="print the selected cells and their commands, run nothing")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--learner-device", default=None, metavar="DEVICE",
+                    help="learners' networks on DEVICE (e.g. cuda), simulation on the CPU; planners unchanged")
     args = ap.parse_args(argv)
     grid = load_grid(args.quick, args.grid)
     out = Path(args.out or ("runs/compare-quick" if args.quick else "runs/compare"))
@@ -615,7 +654,7 @@ def main(argv: list[str] | None = None) -> int:
         bad = sorted(set(vals or []) - set(allowed))
         if bad:
             ap.error(f"{name}: unknown {bad}; this grid has {allowed}")
-    cells = build_cells(grid, out, args.methods, args.variants, args.targets, args.seeds)
+    cells = build_cells(grid, out, args.methods, args.variants, args.targets, args.seeds, args.learner_device)
     if not cells:
         ap.error("no cell matches the filters")
     if args.list:

@@ -146,3 +146,19 @@ def test_large_replay_buffer_warning(capsys):
     assert capsys.readouterr().err == ""
     warn_if_large_buffer(100_000, 16, obs)                   # 19.7 GB
     assert "19.7 GB" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("algo", ["sac", "ppo"])
+@pytest.mark.parametrize("env_device", ["cpu", ""])
+def test_learner_on_cuda_with_env_on_cpu_or_cuda(algo, env_device, tmp_path):
+    m = MODULES[algo]
+    extra = ["--obs", "image", "--action", "pixel", "--target", "random", "--set", "image_size=40",
+             "--set", "cnn_channels=[4,8,8]", "--set", "features_dim=32", "--set", "device=cuda"]
+    extra += ["--set", f"env_device={env_device}"] if env_device else []
+    assert m.main(argv(algo, tmp_path, 256, *extra)) == 0
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["env_steps"] == 256 and len(res["episodes"]) == 8
+    assert all(np.isfinite(e["final_error"]) for e in res["episodes"])
+    assert m.main(["--out", str(tmp_path), "--resume", "--total-steps", "384", "--no-progress"]) == 0
+    assert json.loads((tmp_path / "results.json").read_text())["env_steps"] == 384

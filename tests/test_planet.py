@@ -252,3 +252,18 @@ def test_world_model_benchmark_runs(capsys):
                               "--set", "elites=2", "--set", "iterations=1", "--set", "deter=8", "--set", "stoch=2",
                               "--set", "hidden=8", "--set", "embed=8"]) == 0
     assert capsys.readouterr().out.count("planned move") == 3
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("obs,env_device", [("points", "cpu"), ("points", ""), ("image", "cpu")])
+def test_planet_on_cuda_with_env_on_cpu_or_cuda(obs, env_device, tmp_path):
+    extra = ["--obs", obs, "--target", "random", "--set", "device=cuda"]
+    extra += ["--set", f"env_device={env_device}"] if env_device else []
+    if obs == "image":
+        extra += ["--action", "pixel", "--set", "image_size=40", "--set", "cnn_channels=[4,8,8]",
+                  "--set", "image_embed=32", "--set", "deconv_channels=[8,4]", "--set", "buffer_size=2048"]
+    assert planet.main(argv(tmp_path, 96, *extra)) == 0
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert res["env_steps"] == 96 and len(res["episodes"]) == 4
+    assert all(e["final_error"] == e["final_error"] for e in res["episodes"])
+    assert planet.main(["--out", str(tmp_path), "--resume", "--total-steps", "160", "--no-progress"]) == 0
