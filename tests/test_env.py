@@ -46,7 +46,7 @@ def test_gymnasium_check_env_without_warnings(small, obs_type, action_type, rewa
 @pytest.mark.parametrize("obs_type,action_type", [("points", "node"), ("distance", "pixel"), ("image", "node"),
                                                   ("image_single", "pixel")])
 def test_sb3_check_env(small, obs_type, action_type):
-    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+    sb3_check_env = pytest.importorskip("stable_baselines3.common.env_checker").check_env
     env = make(small, obs_type=obs_type, action_type=action_type)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")            # advisory warnings (the [0, 1] action box) are fine
@@ -293,7 +293,7 @@ def test_torch_native_interface(small):
 
 def test_sb3_sac_multi_input_runs(small):
     """The README's SAC snippet, on the small rope."""
-    from stable_baselines3 import SAC
+    SAC = pytest.importorskip("stable_baselines3").SAC
     env = make(small, target="horizontal")
     model = SAC("MultiInputPolicy", env, learning_starts=4, batch_size=8, buffer_size=100, seed=0)
     model.learn(total_timesteps=8)
