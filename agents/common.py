@@ -353,11 +353,13 @@ def save_checkpoint(path: Path | str, state: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: Path | str, device: Any = "cpu") -> dict[str, Any]:
+def load_checkpoint(path: Path | str) -> dict[str, Any]:
+    """A checkpoint, loaded onto the CPU: every part (networks, optimizers, buffer, env, planners) moves its own
+    tensors to its device when loaded, and RNG states must stay CPU tensors."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"--resume: no checkpoint at {path}")
-    return torch.load(path, map_location=device, weights_only=False)
+    return torch.load(path, map_location="cpu", weights_only=False)
 
 
 # ====================================================================== evaluation

@@ -393,7 +393,7 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
     step, n_updates, last_eval, last_ckpt, last_train, wall_before = 0, 0, 0, 0, 0, 0.0
     last_success: float | None = None
     if resume:
-        ck = load_checkpoint(out / CHECKPOINT, device)
+        ck = load_checkpoint(out / CHECKPOINT)
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["opt"])
         rb.load_state_dict(ck["buffer"])

@@ -135,7 +135,7 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
     step, n_updates, last_eval, last_ckpt, wall_before, rollouts = 0, 0, 0, 0, 0.0, 0
     last_success: float | None = None
     if resume:
-        ck = load_checkpoint(out / CHECKPOINT, device)
+        ck = load_checkpoint(out / CHECKPOINT)
         agent.load_state_dict(ck["agent"])
         opt.load_state_dict(ck["opt"])
         rb.load_state_dict(ck["buffer"])

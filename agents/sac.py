@@ -148,7 +148,7 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
     last_success: float | None = None
 
     if resume:
-        ck = load_checkpoint(out / CHECKPOINT, device)
+        ck = load_checkpoint(out / CHECKPOINT)
         actor.load_state_dict(ck["actor"])
         critic.load_state_dict(ck["critic"])
         critic_target.load_state_dict(ck["critic_target"])
