@@ -61,6 +61,16 @@ def check_config(cfg) -> None:
         v = getattr(cfg, key)
         if not isinstance(v, int) or isinstance(v, bool) or v < 1:
             raise ValueError(f"{key} must be a positive integer, got {v!r}")
+    for key in ("device", "env_device"):
+        v = getattr(cfg, key, None)
+        if key == "env_device" and not v:
+            continue                      # "": the learner's device
+        try:
+            dev = torch.device(v)
+        except (RuntimeError, TypeError) as exc:
+            raise ValueError(f"{key} must be a torch device such as 'cpu' or 'cuda', got {v!r}") from exc
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"{key}={v!r}: CUDA is not available on this machine")
     po = cfg.param_overrides
     if po is not None:
         fields = {f.name for f in dataclasses.fields(CableParams)}

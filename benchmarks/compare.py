@@ -395,7 +395,8 @@ def machine_label(res: dict[str, Any]) -> str:
     m = res.get("_machine")
     if not m:
         return "machine not recorded"
-    return f"{m.get('cpus')}-core CPU" + (f" + {m['gpu']}" if m.get("gpu") else "")
+    label = f"{m.get('cpus')}-core CPU" + (f" + {m['gpu']}" if m.get("gpu") else "")
+    return label + (f"; {m['note']}" if m.get("note") else "")
 
 
 def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures: Path | str | None,

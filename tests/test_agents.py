@@ -101,7 +101,9 @@ def test_plot_command(tmp_path):
                                          (["--total-steps", "-5"], "positive integer"),
                                          (["--action", "joint"], "invalid choice"),
                                          (["--set", "no_such_key=1"], "unknown config keys"),
-                                         (["--set", "param_overrides={n_nodes:6}"], "param_overrides")])
+                                         (["--set", "param_overrides={n_nodes:6}"], "param_overrides"),
+                                         (["--set", "env_device=gpu0"], "env_device must be a torch device"),
+                                         (["--device", "tpu"], "device must be a torch device")])
 def test_bad_cli_values_give_clear_errors(bad, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         sac.main(["--out", str(tmp_path), *bad])
@@ -162,3 +164,10 @@ def test_learner_on_cuda_with_env_on_cpu_or_cuda(algo, env_device, tmp_path):
     assert all(np.isfinite(e["final_error"]) for e in res["episodes"])
     assert m.main(["--out", str(tmp_path), "--resume", "--total-steps", "384", "--no-progress"]) == 0
     assert json.loads((tmp_path / "results.json").read_text())["env_steps"] == 384
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
+def test_cuda_requested_without_cuda_is_a_clear_error(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        ppo.main(["--out", str(tmp_path), "--set", "device=cuda", "--set", "env_device=cpu"])
+    assert "device='cuda': CUDA is not available" in capsys.readouterr().err
