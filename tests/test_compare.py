@@ -70,6 +70,15 @@ def test_grid_is_data_and_filters_work(tmp_path):
     assert c["argv"][c["argv"].index("--seed") + 1] == "3" and "eval_seed=13000" in c["argv"]
     p = compare.build_cells(full, tmp_path, methods=["cem"], targets=["diagonal"], seeds=[2])[0]
     assert p["argv"][p["argv"].index("--seed") + 1] == "12000"
+    # --learner-device: learners' networks there, the rope in the CPU kernel; planners untouched
+    dev = compare.build_cells(full, tmp_path, methods=["sac", "cem"], targets=["diagonal"], seeds=[0],
+                              learner_device="cuda")
+    learner, planner = (next(c for c in dev if c["kind"] == k) for k in ("agent", "planner"))
+    assert learner["argv"][-6:-2] == ["--set", "device=cuda", "--set", "env_device=cpu"]
+    assert learner["learner_device"] == "cuda"
+    assert not any("device" in a for a in planner["argv"]) and "learner_device" not in planner
+    assert compare.machine_label({"_machine": {"cpus": 16, "gpu": "H100"}}) == "16-core CPU + H100"
+    assert compare.machine_label({}) == "machine not recorded"
 
 
 def test_quick_run_writes_a_well_formed_table(quick):
