@@ -340,6 +340,8 @@ def _load(cell: dict[str, Any]) -> dict[str, Any] | None:
     cj = cell_dir(cell) / "cell.json"
     meta = json.loads(cj.read_text()) if cj.exists() else {}
     res["_command"] = meta.get("command") or command_line(cell)
+    if meta.get("resume_command"):              # a cell continued elsewhere from its checkpoint (see its machine)
+        res["_command"] += "` then `" + meta["resume_command"]
     res["_machine"] = meta.get("machine")
     res["_learner_device"] = meta.get("learner_device")
     return res
@@ -457,8 +459,9 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
             cmd = " ; ".join(harness_command(grid["name"], str(out), method, variant, target, sd, d or None)
                              for d, sd in row_groups)
             w = f"{st['wall']:.1f}" + (f" ({st['s_per_move']:.2f})" if st["s_per_move"] is not None else "")
-            if any(devices):
-                w += " on " + ", ".join(sorted({machine_label(r) for _, r in items}))
+            n_dev = sum(bool(r.get("_learner_device")) for _, r in items)
+            if n_dev:
+                w += f" ({n_dev} of {len(items)} seeds with --learner-device: machines in the per-seed list)"
             moves = "—" if not st["moves"][1] else f"{st['moves'][0]:.1f}; {st['moves'][1]}"
             if not math.isnan(st["moves2"]):
                 moves += f" (to 2 cm: {st['moves2']:.1f})"

@@ -147,3 +147,24 @@ def test_partial_report_names_the_cells_not_run(quick, tmp_path):
     assert f"4 of {n} cells finished" in md
     assert f"**Partial comparison: {n - 4} of {n} cells not run yet**" in md
     assert "ppo/points/random: 0 1 2 3 4" in md and "greedy/default/diagonal: 1 2 3 4;" in md
+
+
+def test_report_shows_where_a_cell_ran_and_how_it_was_resumed(quick, tmp_path):
+    import shutil
+    root, _ = quick
+    cells_dir = tmp_path / "cells"
+    shutil.copytree(root / "cells", cells_dir)
+    grid = compare.load_grid(quick=True)
+    sac_cell = compare.build_cells(grid, cells_dir, methods=["sac"], targets=["diagonal"], seeds=[0])[0]
+    meta_path = Path(sac_cell["dir"]) / "cell.json"
+    meta = json.loads(meta_path.read_text())
+    assert meta["machine"]["cpus"] >= 1                      # recorded by the harness when the cell ran
+    meta.update(learner_device="cuda", resume_command="python -m agents.sac --out X --resume --device cpu",
+                machine=dict(meta["machine"], gpu="Some GPU", note="resumed on a CPU"))
+    meta_path.write_text(json.dumps(meta))
+    compare.write_report(grid, cells_dir, tmp_path / "R.md", None)
+    md = (tmp_path / "R.md").read_text()
+    assert "(1 of 1 seeds with --learner-device: machines in the per-seed list)" in md
+    assert "--learner-device cuda" in md
+    assert "` then `python -m agents.sac --out X --resume --device cpu` (" in md
+    assert "+ Some GPU; resumed on a CPU)" in md
