@@ -275,8 +275,8 @@ def open_loop_eval(model: RSSM, cfg: PlaNetConfig, n_episodes: int | None = None
     n = n_episodes or cfg.openloop_episodes
     context = cfg.openloop_context if context is None else context
     k_max = max(horizons)
-    env = make_env(dataclasses.replace(cfg, max_steps=max(context + k_max + 1, cfg.max_steps or 0), env_device=cfg.device),
-                   n)
+    max_steps = max(context + k_max + 1, cfg.max_steps or 0)
+    env = make_env(dataclasses.replace(cfg, max_steps=max_steps, env_device=cfg.device), n)
     obs = env.reset(seed=cfg.openloop_seed if seed is None else seed)
     g = torch.Generator().manual_seed(cfg.openloop_seed if seed is None else seed)
     dev = cfg.device

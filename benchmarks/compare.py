@@ -224,6 +224,11 @@ def machine_info(cell: dict[str, Any]) -> dict[str, Any]:
     return info
 
 
+def _write_cell_json(d: Path, cell: dict[str, Any]) -> None:
+    (d / "cell.json").write_text(json.dumps(dict(cell, command=command_line(cell), machine=machine_info(cell)),
+                                            indent=2))
+
+
 def is_done(cell: dict[str, Any]) -> bool:
     return (cell_dir(cell) / "results.json").exists()
 
@@ -275,8 +280,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
                 if not (sub_out / "results.json").exists():
                     _call([*head, "--target", t, *sub[2:]], log, cell["cwd"])
                 parts.append(json.loads((sub_out / "results.json").read_text()))
-            (d / "cell.json").write_text(json.dumps(dict(cell, command=command_line(cell), machine=machine_info(cell)),
-                                                    indent=2))
+            _write_cell_json(d, cell)
             (d / "results.json").write_text(json.dumps(_merge(parts, cell), indent=2))
         else:
             argv = cell["argv"]
@@ -284,8 +288,9 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
                 argv = ["-m", argv[1], "--out", str(d), "--resume", "--no-progress"]
                 if cell.get("total_steps"):
                     argv += ["--total-steps", str(cell["total_steps"])]
-            (d / "cell.json").write_text(json.dumps(dict(cell, command=command_line(cell), machine=machine_info(cell)),
-                                                    indent=2))
+                if cell.get("learner_device"):                            # the device asked for now, not the saved one
+                    argv += ["--device", cell["learner_device"]]
+            _write_cell_json(d, cell)
             _call(argv, log, cell["cwd"])
         return {"cell": cell, "status": "done", "wall_s": time.perf_counter() - t0}
     except Exception as exc:  # noqa: BLE001 - a failed cell must not stop the others; it reruns next time
