@@ -130,15 +130,13 @@ class TrainEnv:
 
     def step(self, actions: torch.Tensor, mask: torch.Tensor | None = None):
         final_obs, reward, term, trunc, info = self.core.step(actions.to(self.core.device), mask=mask)
-        final_obs, reward, term, trunc = (self.to_learner(x) for x in (final_obs, reward, term, trunc))
         active = torch.ones(self.num_envs, dtype=torch.bool) if mask is None else mask.cpu()
-        self.ep_return += reward.double().cpu() * active
+        self.ep_return += reward.double().cpu() * active      # bookkeeping from the simulator's tensors
         self.ep_length += active.long()
         done = (term | trunc).cpu()
         info = dict(info, ep_return=self.ep_return.clone(), ep_length=self.ep_length.clone())
-        obs = final_obs
-        if bool(done.any()):
-            obs = self.reset(mask=done)
+        final_obs, reward, term, trunc = (self.to_learner(x) for x in (final_obs, reward, term, trunc))
+        obs = self.reset(mask=done) if bool(done.any()) else final_obs
         return obs, reward, term, trunc, info, final_obs
 
     def state_dict(self) -> dict[str, Any]:
