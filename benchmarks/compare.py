@@ -433,7 +433,9 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
               "**Final error**: per-seed mean of the episodes' last shape error, t-interval over seeds. "
               "**Moves to success**: mean moves of the successful episodes (n = their number); planners "
               "also: mean first move under 2 cm over the episodes that got there (from their per-move errors). "
-              "**Env steps**: learners: training env transitions (the budget); planners: moves executed over the "
+              "**Env steps**: learners: training env transitions actually run (the budget, or more: PPO collects "
+              "whole rollouts of n_steps × num_envs transitions, as SB3 does, so it stops at the first rollout "
+              "boundary at or past the budget); planners: moves executed over the "
               "cell's episodes. **Sim evals**: rope-moves simulated by a planner per episode (learners: none). "
               "**Wall**: seconds per cell (planners: and planning seconds per move).", ""]
     missing: dict[str, list[str]] = {}
