@@ -128,7 +128,11 @@ def wilson(successes: int, n: int, z: float = Z95) -> tuple[float, float, float]
 def load_grid(quick: bool = False, path: Path | str = GRID_FILE) -> dict[str, Any]:
     grids = yaml.safe_load(Path(path).read_text())
     name = "quick" if quick else "full"
-    return dict(grids[name], name=name)
+    grid = dict(grids[name], name=name)
+    if not isinstance(grid.get("budgets", ""), str):
+        raise ValueError(f"{path}: grid {name!r}: 'budgets' must be text (the report prints it), "
+                         f"got {grid['budgets']!r}")
+    return grid
 
 
 def _flags(args: dict[str, Any]) -> list[str]:
@@ -438,6 +442,8 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
               "boundary at or past the budget); planners: moves executed over the "
               "cell's episodes. **Sim evals**: rope-moves simulated by a planner per episode (learners: none). "
               "**Wall**: seconds per cell (planners: and planning seconds per move).", ""]
+    if grid.get("budgets"):
+        lines += [f"**Budgets.** {' '.join(grid['budgets'].split())}", ""]
     missing: dict[str, list[str]] = {}
     for c, r in loaded:
         if r is None:

@@ -147,6 +147,15 @@ def test_partial_report_names_the_cells_not_run(quick, tmp_path):
     assert f"4 of {n} cells finished" in md
     assert f"**Partial comparison: {n - 4} of {n} cells not run yet**" in md
     assert "ppo/points/random: 0 1 2 3 4" in md and "greedy/default/diagonal: 1 2 3 4;" in md
+    budgets = " ".join(full["budgets"].split())                # the grid's own budget statement, reflowed
+    assert "sized for a 2-core CPU" in budgets and f"**Budgets.** {budgets}" in md
+
+
+def test_grid_budgets_must_be_text(tmp_path):
+    bad = tmp_path / "grid.yaml"
+    bad.write_text("full: {seeds: [0], targets: [diagonal], episodes: 1, eval_seed_base: 0, budgets: [1, 2], methods: {}}")
+    with pytest.raises(ValueError, match=r"'budgets' must be text.*\[1, 2\]"):
+        compare.load_grid(path=bad)
 
 
 def test_report_shows_where_a_cell_ran_and_how_it_was_resumed(quick, tmp_path):
