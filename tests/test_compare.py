@@ -85,6 +85,7 @@ def test_quick_run_writes_a_well_formed_table(quick):
     root, _ = quick
     md = (root / "RESULTS.md").read_text()
     assert "QUICK RUN" in md and "NOT results" in md
+    assert "**Budgets.** tiny, a format example only: planners 3 moves" in md
     tables, header = parse_tables(md)
     assert header == compare.COLUMNS
     assert [r["method"] for r in tables["diagonal"]] == ["greedy", "cem", "sac"]
