@@ -25,7 +25,8 @@ import torch.nn as nn
 import yaml
 from gymnasium.utils import seeding
 
-from diffdlo.envs.shape_control import ACTION_TYPES, OBS_TYPES, BatchedShapeControl
+from agents.hybrid import FEATURE_OBS
+from diffdlo.envs.shape_control import ACTION_TYPES, EXIT_RULES, OBS_TYPES, BatchedShapeControl
 from diffdlo.params import CableParams, ParamsError, load_params
 from diffdlo.rewards import REWARDS
 from diffdlo.shapes import TARGET_NAMES, TargetError
@@ -35,9 +36,22 @@ CHECKPOINT = "checkpoint.pt"
 
 
 # ====================================================================== configuration
-def load_config(cls, name: str, overrides: dict[str, Any] | None = None):
+def preset_path(algo: str, preset: str | None) -> Path:
+    """``params/<algo>.yaml`` for the preset "tuned" (the default), ``params/<algo>-<preset>.yaml`` otherwise."""
+    if preset in (None, "tuned"):
+        return PARAMS_DIR / f"{algo}.yaml"
+    path = PARAMS_DIR / f"{algo}-{preset}.yaml"
+    if not path.exists():
+        known = ["tuned"] + sorted(p.stem[len(algo) + 1:] for p in PARAMS_DIR.glob(f"{algo}-*.yaml"))
+        raise ValueError(f"unknown preset {preset!r} for {algo}: use one of {known}")
+    return path
+
+
+def load_config(cls, name: str | Path, overrides: dict[str, Any] | None = None):
     """Dataclass ``cls`` from ``params/<name>.yaml`` (or a YAML path) then ``overrides``; unknown keys raise."""
     path = Path(name) if str(name).endswith((".yaml", ".yml")) else PARAMS_DIR / f"{name}.yaml"
+    if not path.exists():
+        raise ValueError(f"config file {str(path)!r} does not exist")
     values = yaml.safe_load(path.read_text()) or {}
     values.update(overrides or {})
     fields = {f.name for f in dataclasses.fields(cls)}
@@ -71,6 +85,18 @@ def check_config(cfg) -> None:
             raise ValueError(f"{key} must be a torch device such as 'cpu' or 'cuda', got {v!r}") from exc
         if dev.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"{key}={v!r}: CUDA is not available on this machine")
+    choices = {"policy": ("hybrid", "gaussian"), "features": ("relative", "raw"), "on_exit": EXIT_RULES}
+    for key, allowed in choices.items():
+        if hasattr(cfg, key) and getattr(cfg, key) not in allowed:
+            raise ValueError(f"unknown {key} {getattr(cfg, key)!r}: use one of {list(allowed)}")
+    if getattr(cfg, "policy", None) == "hybrid" and cfg.action != "node":
+        raise ValueError(f"policy 'hybrid' chooses a node: it needs action 'node', got {cfg.action!r} "
+                         "(use --set policy=gaussian for pixel actions)")
+    if getattr(cfg, "features", None) == "relative" and cfg.obs not in FEATURE_OBS:
+        raise ValueError(f"features 'relative' need obs {list(FEATURE_OBS)}, got {cfg.obs!r} "
+                         "(use --set features=raw for images)")
+    if getattr(cfg, "normalize_obs", False) and getattr(cfg, "features", None) != "relative":
+        raise ValueError("normalize_obs needs features 'relative' (images and raw observations are not normalized)")
     po = cfg.param_overrides
     if po is not None:
         fields = {f.name for f in dataclasses.fields(CableParams)}
@@ -164,9 +190,11 @@ class TrainEnv:
 def make_env(cfg, num_envs: int) -> TrainEnv:
     """The training/evaluation env of a config (targets, obs, actions, reward, params, optional fixed start)."""
     params = make_params(cfg)
+    shaping = {k: getattr(cfg, k) for k in ("success_bonus", "step_penalty", "on_exit", "exit_penalty")
+               if hasattr(cfg, k)}                   # the task's episode-end rules (PlaNet keeps the env's defaults)
     core = BatchedShapeControl(num_envs=num_envs, target=cfg.target, obs_type=cfg.obs, action_type=cfg.action,
                                reward=cfg.reward, max_steps=cfg.max_steps, success_tol=cfg.success_tol, params=params,
-                               image_size=cfg.image_size, device=cfg.env_device or cfg.device)
+                               image_size=cfg.image_size, device=cfg.env_device or cfg.device, **shaping)
     start = None
     if cfg.start:
         start = torch.as_tensor(np.load(cfg.start) if isinstance(cfg.start, str) else np.asarray(cfg.start))
@@ -300,9 +328,12 @@ class EpisodeStats:
     def __init__(self, window: int = 100):
         self.buf: deque = deque(maxlen=window)
 
-    def add(self, info: dict[str, torch.Tensor], done: torch.Tensor, terminated: torch.Tensor) -> None:
+    def add(self, info: dict[str, torch.Tensor], done: torch.Tensor) -> None:
+        """Record the episodes that ended (``done``); success is ``info["is_success"]`` (a terminated episode may
+        also be a failure: the env's on_exit="fail")."""
+        success = info["is_success"].cpu()
         for i in done.cpu().nonzero().flatten().tolist():
-            self.buf.append((float(info["ep_return"][i]), int(info["ep_length"][i]), bool(terminated[i])))
+            self.buf.append((float(info["ep_return"][i]), int(info["ep_length"][i]), bool(success[i])))
 
     def means(self) -> dict[str, float]:
         if not self.buf:
@@ -381,6 +412,7 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
     """
     env = env if isinstance(env, TrainEnv) else TrainEnv(env)
     b = env.num_envs
+    t0 = time.perf_counter()
     episodes, ropes, targets = [], [], []
     wave = 0
     while len(episodes) < n_episodes:
@@ -400,7 +432,7 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
             steps += active.long()
             done = (term | trunc).cpu() & active
             final_err[done] = info["shape_error"].cpu().float()[done]
-            success[done] = term.cpu()[done]
+            success[done] = info["is_success"].cpu()[done]
             final_pos[done.to(final_pos.device)] = env.core.pos[done.to(final_pos.device)]
             active &= ~done
         for i in range(min(b, n_episodes - len(episodes))):
@@ -412,7 +444,34 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
             "mean_reward": float(np.mean([e["return"] for e in episodes])),
             "mean_length": float(np.mean([e["steps"] for e in episodes])),
             "mean_final_error": float(np.mean([e["final_error"] for e in episodes])),
-            "episodes": episodes, "ropes": torch.stack(ropes), "targets": torch.stack(targets)}
+            "episodes": episodes, "ropes": torch.stack(ropes), "targets": torch.stack(targets),
+            "s_per_episode": (time.perf_counter() - t0) / len(episodes)}
+
+
+def heldout_envs(cfg) -> dict[str, tuple[Any, TrainEnv]]:
+    """One evaluation env per entry of ``cfg.eval_targets`` (target shapes the learner does not train on, e.g.
+    planners/targets/arc.npy), keyed by a label (the file's stem, or the name): label -> (spec, env). Built before
+    training, so a bad target is an error at once, not after the run."""
+    envs: dict[str, tuple[Any, TrainEnv]] = {}
+    for spec in getattr(cfg, "eval_targets", None) or []:
+        label = Path(spec).stem if str(spec).endswith((".npy", ".yaml", ".yml")) else str(spec)
+        if label in envs:
+            raise ValueError(f"eval_targets: {spec!r} repeats the label {label!r}")
+        envs[label] = (spec, make_env(dataclasses.replace(cfg, target=spec), min(cfg.eval_episodes, 32)))
+    return envs
+
+
+def evaluate_heldout(policy: Callable[[Any, bool], torch.Tensor], envs: dict[str, tuple[Any, TrainEnv]],
+                     cfg) -> dict[str, Any]:
+    """``evaluate`` on every held-out target (as many episodes, from the same start seeds, as the main evaluation):
+    label -> {target, success_rate, mean_final_error, episodes}."""
+    out = {}
+    for label, (spec, env) in envs.items():
+        r = evaluate(policy, env, cfg.eval_episodes, seed=cfg.eval_seed)
+        out[label] = {"target": str(spec), "success_rate": r["success_rate"],
+                      "mean_final_error": r["mean_final_error"],
+                      "episodes": [{k: e[k] for k in ("success", "steps", "final_error")} for e in r["episodes"]]}
+    return out
 
 
 def eval_row(result: dict[str, Any]) -> dict[str, float]:
@@ -420,8 +479,11 @@ def eval_row(result: dict[str, Any]) -> dict[str, float]:
 
 
 def write_results(out: Path, method: str, cfg, result: dict[str, Any], env_steps: int, wall_s: float,
-                  max_pictures: int = 8) -> dict[str, Any]:
-    """``results.json`` (DESIGN.md fields) and ``eval_episodes.png`` (final shapes against targets)."""
+                  max_pictures: int = 8, heldout: dict[str, Any] | None = None,
+                  extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``results.json`` (DESIGN.md fields; ``heldout``: per held-out target, its success rate and episodes;
+    ``extra``: a learner's own figures, e.g. SAC's ms per update) and ``eval_episodes.png`` (final shapes against
+    targets)."""
     out = Path(out)
     eps = result["episodes"]
     results = {"method": method, "target": cfg.target if isinstance(cfg.target, str) else "custom",
@@ -430,7 +492,11 @@ def write_results(out: Path, method: str, cfg, result: dict[str, Any], env_steps
                             for e in eps],
                "env_steps": int(env_steps), "wall_s": float(wall_s),
                "mean_reward": result["mean_reward"], "mean_length": result["mean_length"],
+               "eval_s_per_episode": result.get("s_per_episode"),
                "obs": cfg.obs, "action": cfg.action, "reward": cfg.reward}
+    results.update(extra or {})
+    if heldout:
+        results["heldout"] = heldout
     (out / "results.json").write_text(json.dumps(results, indent=2))
     try:
         import matplotlib
@@ -461,7 +527,10 @@ def positive_int(text: str) -> int:
 def make_parser(prog: str, doc: str | None) -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=prog, description=(doc or "").split("\n\n")[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    ap.add_argument("--config", default=None, help="YAML of defaults (default params/<algo>.yaml)")
+    ap.add_argument("--preset", default=None,
+                    help="named defaults: 'tuned' (params/<algo>.yaml, the default) or e.g. 'sb3-default' "
+                         "(params/<algo>-sb3-default.yaml)")
+    ap.add_argument("--config", default=None, help="YAML of defaults (instead of a preset)")
     ap.add_argument("--target", default=None, help=f"'random' or one of {list(TARGET_NAMES)} or a .npy/.yaml path")
     ap.add_argument("--obs", choices=OBS_TYPES, default=None, help="observation type")
     ap.add_argument("--action", choices=ACTION_TYPES, default=None, help="action type")
@@ -500,8 +569,10 @@ def config_from_args(cls, algo: str, args: argparse.Namespace, ap: argparse.Argu
         v = getattr(args, key)
         if v is not None:
             overrides[key] = v
+    if args.config and args.preset:
+        ap.error("give --config or --preset, not both")
     try:
-        return load_config(cls, args.config or algo, overrides)
+        return load_config(cls, args.config or preset_path(algo, args.preset), overrides)
     except (ValueError, TypeError) as exc:
         ap.error(str(exc))
 

@@ -443,7 +443,7 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
         rb.add(obs, action, reward, term, trunc, final_obs=final_obs)
         done = (term | trunc).cpu()
         if bool(done.any()):
-            stats.add(info, done, term)
+            stats.add(info, done)
         obs = next_obs
         step += cfg.num_envs
         bar.update(cfg.num_envs)

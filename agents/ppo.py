@@ -8,10 +8,21 @@ masked reset of the ended ropes). Each rollout fills the shared ``ReplayBuffer``
 with log-probs and values; GAE(lambda) bootstraps a truncated step from V(true final observation) and never a
 terminated one.
 
-Actions: a diagonal Gaussian with a state-independent log-std (SB3/CleanRL). The raw sample u is stored and its
-log-probability used in the ratio; the env receives clip(u, 0, 1) (SB3's clipping of Box actions; the env itself
-clips as well). The mean head starts at 0.5 (the middle of the box) and the std at 0.5, half of SB3's 1.0 because
-our box [0, 1] is half as wide as SB3's usual [-1, 1]. Deterministic actions: clip(mean, 0, 1).
+Two presets (``--preset``): ``tuned`` (the default, params/ppo.yaml) and ``sb3-default`` (params/ppo-sb3-default.yaml:
+SB3's and the thesis's settings, kept as the comparison's labelled baseline). Their differences are config keys:
+
+- ``policy: hybrid`` (tuned): a categorical over the N nodes plus a Gaussian drag per node with a state-independent
+  log-std, mapped exactly onto the env's node action (agents/hybrid.py); the stored action is (k, d_x, d_y) and its
+  log-probability is log Cat(k) + log N(d | mu_k, std). ``policy: gaussian`` (sb3-default): a diagonal Gaussian over
+  the env's box with a state-independent log-std (SB3/CleanRL); the raw sample u is stored and its log-probability
+  used in the ratio, the env receives clip(u, 0, 1); the mean starts at 0.5 and the std at 0.5 (half of SB3's 1.0:
+  our box [0, 1] is half as wide as SB3's usual [-1, 1]). Deterministic actions: the mode (argmax node, mean drag)
+  or clip(mean, 0, 1).
+- ``features: relative`` + ``normalize_obs`` (tuned): target-relative features, running-normalized
+  (agents/hybrid.py); ``raw``: the observation flattened in rope lengths (and images through a CNN).
+- the task's episode-end rules (``reward``, ``success_bonus``, ``on_exit``, ``exit_penalty``, ``step_penalty``: env
+  keyword arguments, see BatchedShapeControl) and the scale of the rollouts (``num_envs``, ``n_steps``), the lr
+  schedule (``anneal_lr``) and the discount.
 """
 from __future__ import annotations
 
@@ -27,10 +38,11 @@ import torch
 import torch.nn as nn
 from tqdm import tqdm
 
+from agents import hybrid
 from agents.buffer import ReplayBuffer
 from agents.common import (CHECKPOINT, EpisodeStats, Logger, ObsEncoder, eval_row, evaluate, fmt_postfix,
-                           load_checkpoint, make_env, make_params, mlp, rng_state, run_cli, save_checkpoint,
-                           seed_everything, set_rng_state, torch_threads, write_results)
+                           evaluate_heldout, heldout_envs, load_checkpoint, make_env, make_params, mlp, rng_state,
+                           run_cli, save_checkpoint, seed_everything, set_rng_state, torch_threads, write_results)
 
 
 # ====================================================================== config (defaults: params/ppo.yaml)
@@ -47,6 +59,10 @@ class PPOConfig:
     start: Any = None
     success_tol: float | None = None      # None: params' 0.01 m
     image_size: int = 64
+    success_bonus: float | None = None    # None: params' 20 (Algorithm 2)
+    step_penalty: float = 0.0
+    on_exit: str = "truncate"             # "fail": leaving the workspace terminates the episode
+    exit_penalty: float = 0.0
     # run
     total_steps: int = 1_000_000
     num_envs: int = 16
@@ -57,9 +73,14 @@ class PPOConfig:
     eval_every: int = 20_000
     eval_episodes: int = 20
     eval_seed: int = 10_000
+    eval_targets: list = dataclasses.field(default_factory=list)   # held-out targets evaluated at the end
     checkpoint_every: int = 50_000       # checked after each rollout + update
     log_every: int = 1                   # rollouts between train-loss rows
     # algorithm
+    policy: str = "gaussian"              # "hybrid" | "gaussian"
+    features: str = "raw"                 # "relative" | "raw"
+    normalize_obs: bool = False           # running mean/std of the features (relative features only)
+    anneal_lr: bool = False               # lr decays linearly to 0 over total_steps (CleanRL anneal_lr)
     lr: float = 3e-4
     n_steps: int = 2048                  # rows per rollout (per env)
     batch_size: int = 64
@@ -86,31 +107,117 @@ def ortho(layer: nn.Module, gain: float) -> nn.Module:
     return layer
 
 
-class ActorCritic(nn.Module):
-    """Shared observation encoder (SB3 PPO shares its features extractor), separate tanh MLPs for pi and V
-    (SB3 net_arch pi=[64, 64], vf=[64, 64]), orthogonal init (gains sqrt 2, 0.01 for pi, 1 for V)."""
+class GaussianDist:
+    """A diagonal Gaussian over the env's box; log-prob and entropy summed over the action dimensions."""
 
-    def __init__(self, obs_example: Any, action_dim: int, cfg: PPOConfig, scale: float):
+    def __init__(self, mean: torch.Tensor, std: torch.Tensor):
+        self.normal = torch.distributions.Normal(mean, std.expand_as(mean))
+
+    def sample(self) -> torch.Tensor:
+        return self.normal.sample()
+
+    def log_prob(self, u: torch.Tensor) -> torch.Tensor:
+        return self.normal.log_prob(u).sum(-1)
+
+    def entropy(self) -> torch.Tensor:
+        return self.normal.entropy().sum(-1)
+
+    def mode(self) -> torch.Tensor:
+        return self.normal.mean
+
+
+class HybridDist:
+    """Node k ~ Cat(logits), drag d ~ N(mean[k], std): a stored action is the row (k, d_x, d_y)."""
+
+    def __init__(self, logits: torch.Tensor, mean: torch.Tensor, std: torch.Tensor):
+        self.cat = torch.distributions.Categorical(logits=logits)
+        self.mean, self.std = mean, std                 # (B, N, 2), (2,)
+
+    def _drag(self, node: torch.Tensor) -> torch.distributions.Normal:
+        mu = self.mean[torch.arange(len(node), device=node.device), node]
+        return torch.distributions.Normal(mu, self.std.expand_as(mu))
+
+    def sample(self) -> torch.Tensor:
+        node = self.cat.sample()
+        return hybrid.join(node, self._drag(node).sample())
+
+    def log_prob(self, a: torch.Tensor) -> torch.Tensor:
+        node, drag = hybrid.split(a)
+        return self.cat.log_prob(node) + self._drag(node).log_prob(drag).sum(-1)
+
+    def entropy(self) -> torch.Tensor:
+        """H(node) + H(drag | node): the drag's std does not depend on the node."""
+        return self.cat.entropy() + torch.distributions.Normal(0.0, self.std).entropy().sum(-1)
+
+    def mode(self) -> torch.Tensor:
+        node = self.cat.logits.argmax(-1)
+        return hybrid.join(node, self._drag(node).mean)
+
+
+class ActorCritic(nn.Module):
+    """Observation features (relative + running normalization, or SB3's encoder: flattened floats / NatureCNN),
+    separate tanh MLPs for pi and V (SB3 net_arch pi, vf), orthogonal init (gains sqrt 2, 0.01 for pi, 1 for V), and
+    a Gaussian head over the env's box or a hybrid (node categorical + per-node drag) head."""
+
+    def __init__(self, obs_example: Any, action_dim: int, cfg: PPOConfig, length: float, n_nodes: int):
         super().__init__()
-        self.enc = ObsEncoder(obs_example, scale, cfg.cnn_channels, cfg.features_dim)
-        last = cfg.hidden[-1] if cfg.hidden else self.enc.out_dim
-        self.pi = ortho(mlp(self.enc.out_dim, cfg.hidden, None, nn.Tanh), math.sqrt(2))
-        self.vf = ortho(mlp(self.enc.out_dim, cfg.hidden, None, nn.Tanh), math.sqrt(2))
-        self.mean = ortho(nn.Linear(last, action_dim), 0.01)
+        self.relative, self.hybrid, self.length, self.n_nodes = cfg.features == "relative", cfg.policy == "hybrid", \
+            length, n_nodes
+        if self.relative:
+            self.enc = None
+            feat_dim = hybrid.relative_features(obs_example, length).shape[1]
+        else:
+            self.enc = ObsEncoder(obs_example, 1.0 / length, cfg.cnn_channels, cfg.features_dim)
+            feat_dim = self.enc.out_dim
+        self.norm = hybrid.RunningNorm(feat_dim) if cfg.normalize_obs else None
+        last = cfg.hidden[-1] if cfg.hidden else feat_dim
+        self.pi = ortho(mlp(feat_dim, cfg.hidden, None, nn.Tanh), math.sqrt(2))
+        self.vf = ortho(mlp(feat_dim, cfg.hidden, None, nn.Tanh), math.sqrt(2))
+        out = n_nodes * 3 if self.hybrid else action_dim      # hybrid: N logits + N drag means (x, y)
+        self.mean = ortho(nn.Linear(last, out), 0.01)
         self.value_head = ortho(nn.Linear(last, 1), 1.0)
-        self.log_std = nn.Parameter(torch.full((action_dim,), float(cfg.log_std_init)))
+        self.log_std = nn.Parameter(torch.full((2 if self.hybrid else action_dim,), float(cfg.log_std_init)))
+
+    def features(self, obs: Any, update_norm: bool = False) -> torch.Tensor:
+        """The network input; ``update_norm``: first fold this batch into the running statistics (collection)."""
+        x = hybrid.relative_features(obs, self.length) if self.relative else self.enc(obs)
+        if self.norm is not None:
+            if update_norm:
+                self.norm.update(x)
+            x = self.norm(x)
+        return x
 
     def value(self, obs: Any) -> torch.Tensor:
-        return self.value_head(self.vf(self.enc(obs))).squeeze(-1)
+        return self.value_head(self.vf(self.features(obs))).squeeze(-1)
 
-    def dist(self, obs: Any) -> tuple[torch.distributions.Normal, torch.Tensor]:
-        h = self.enc(obs)
-        mean = 0.5 + self.mean(self.pi(h))
-        return torch.distributions.Normal(mean, self.log_std.exp().expand_as(mean)), self.value_head(self.vf(h)).squeeze(-1)
+    def dist(self, obs: Any, update_norm: bool = False) -> tuple[GaussianDist | HybridDist, torch.Tensor]:
+        h = self.features(obs, update_norm)
+        out = self.mean(self.pi(h))
+        std = self.log_std.exp()
+        if self.hybrid:
+            n = self.n_nodes
+            d = HybridDist(out[:, :n], out[:, n:].reshape(-1, n, 2), std)
+        else:
+            d = GaussianDist(0.5 + out, std)
+        return d, self.value_head(self.vf(h)).squeeze(-1)
+
+    def env_action(self, stored: torch.Tensor) -> torch.Tensor:
+        """A stored action (the sample) -> the env's action in [0, 1]^A."""
+        if self.hybrid:
+            node, drag = hybrid.split(stored)
+            return hybrid.to_env_action(node, drag, self.n_nodes)
+        return stored.clamp(0.0, 1.0)
 
     def act(self, obs: Any, deterministic: bool = False) -> torch.Tensor:
         d, _ = self.dist(obs)
-        return (d.mean if deterministic else d.sample()).clamp(0.0, 1.0)
+        return self.env_action(d.mode() if deterministic else d.sample())
+
+
+def clipped_surrogate(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advantage: torch.Tensor,
+                      clip_range: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """PPO's policy loss -E[min(r A, clip(r, 1 - eps, 1 + eps) A)] with r = exp(log_prob - old_log_prob); and r."""
+    ratio = (log_prob - old_log_prob).exp()
+    return -torch.min(advantage * ratio, advantage * ratio.clamp(1 - clip_range, 1 + clip_range)).mean(), ratio
 
 
 # ====================================================================== training loop
@@ -126,9 +233,11 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
     seed_everything(cfg.seed)
     env = make_env(cfg, cfg.num_envs)
     eval_env = make_env(cfg, min(cfg.eval_episodes, 32))
+    heldout = heldout_envs(cfg)
     obs = env.reset(seed=cfg.seed)
     action_dim = env.core.action_dim
-    agent = ActorCritic(obs, action_dim, cfg, 1.0 / make_params(cfg).length).to(device)
+    params = make_params(cfg)
+    agent = ActorCritic(obs, action_dim, cfg, params.length, params.n_nodes).to(device)
     opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr, eps=1e-5)   # SB3 PPO uses Adam eps 1e-5
     rb = ReplayBuffer(cfg.n_steps, cfg.num_envs, obs, action_dim, device, store_log_prob=True, store_value=True)
     stats = EpisodeStats()
@@ -156,18 +265,21 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
     bar = tqdm(total=cfg.total_steps, initial=min(step, cfg.total_steps), desc="ppo", disable=not progress,
                dynamic_ncols=True, file=sys.stderr)
     while step < cfg.total_steps:
+        if cfg.anneal_lr:
+            for group in opt.param_groups:
+                group["lr"] = cfg.lr * max(0.0, 1.0 - step / cfg.total_steps)
         # ---- collect one rollout into rows [0, n_steps)
         rb.reset()
         for _ in range(cfg.n_steps):
             with torch.no_grad():
-                d, value = agent.dist(obs)
+                d, value = agent.dist(obs, update_norm=True)
                 u = d.sample()
-                log_prob = d.log_prob(u).sum(-1)
-            next_obs, reward, term, trunc, info, final_obs = env.step(u.clamp(0.0, 1.0))
+                log_prob = d.log_prob(u)
+            next_obs, reward, term, trunc, info, final_obs = env.step(agent.env_action(u))
             rb.add(obs, u, reward, term, trunc, final_obs=final_obs, log_prob=log_prob, value=value)
             done = (term | trunc).cpu()
             if bool(done.any()):
-                stats.add(info, done, term)
+                stats.add(info, done)
             obs = next_obs
             step += cfg.num_envs
         bar.update(min(per_rollout, cfg.total_steps - bar.n))
@@ -181,14 +293,12 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
         for _ in range(cfg.n_epochs):
             for b in rb.minibatches(cfg.batch_size):
                 d, v = agent.dist(b["obs"])
-                log_prob = d.log_prob(b["action"]).sum(-1)
-                ratio = (log_prob - b["log_prob"]).exp()
                 adv = b["advantage"]
                 if cfg.normalize_advantage and len(adv) > 1:
                     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss = -torch.min(adv * ratio, adv * ratio.clamp(1 - cfg.clip_range, 1 + cfg.clip_range)).mean()
+                pg_loss, ratio = clipped_surrogate(d.log_prob(b["action"]), b["log_prob"], adv, cfg.clip_range)
                 v_loss = ((b["return"] - v) ** 2).mean()
-                entropy = d.entropy().sum(-1).mean()
+                entropy = d.entropy().mean()
                 loss = pg_loss + cfg.vf_coef * v_loss - cfg.ent_coef * entropy
                 opt.zero_grad()
                 loss.backward()
@@ -205,7 +315,7 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
                                        "entropy": entropy.item(), "ent_coef": cfg.ent_coef,
                                        "approx_kl": float(np.mean(kls)), "clip_fraction": float(np.mean(clip_fracs)),
                                        "explained_variance": explained, "std": agent.log_std.exp().mean().item(),
-                                       "n_updates": n_updates})
+                                       "n_updates": n_updates, "lr": opt.param_groups[0]["lr"]})
             if stats.buf:
                 logger.log("rollout", step, stats.means())
 
@@ -229,7 +339,8 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
     if res is None:
         res = evaluate(policy, eval_env, cfg.eval_episodes, seed=cfg.eval_seed)
     logger.close()
-    return write_results(out, "ppo", cfg, res, step, wall_before + time.perf_counter() - t0)
+    wall = wall_before + time.perf_counter() - t0                # training and its evaluations; not the held-out
+    return write_results(out, "ppo", cfg, res, step, wall, heldout=evaluate_heldout(policy, heldout, cfg))
 
 
 def main(argv: list[str] | None = None) -> int:

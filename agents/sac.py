@@ -7,14 +7,26 @@ all ropes, then ONE masked reset of the ropes whose episode ended (same-step aut
 returned separately and stored in the replay buffer, so a truncated transition bootstraps from its true last
 observation; a terminated one does not bootstrap).
 
-Actions: a tanh-squashed Gaussian mapped to the env's box, a = (tanh(u) + 1) / 2 in [0, 1]^A, with the
-change-of-variables correction log pi(a) = log N(u) - sum log(0.5 (1 - tanh(u)^2)).
-Twin Q critics with target copies (Polyak tau), automatic entropy tuning with target entropy -|A| (SB3 defaults).
+Two presets (``--preset``): ``tuned`` (the default, params/sac.yaml) and ``sb3-default`` (params/sac-sb3-default.yaml:
+SB3's and the thesis's settings, the comparison's labelled baseline). Their policies:
+
+- ``policy: gaussian`` (sb3-default): a tanh-squashed Gaussian mapped to the env's box, a = (tanh(u) + 1) / 2 in
+  [0, 1]^A, with the change-of-variables correction log pi(a) = log N(u) - sum log(0.5 (1 - tanh(u)^2)). Twin Q
+  critics Q(s, a), target copies (Polyak tau), one automatic entropy temperature with target entropy -|A|.
+- ``policy: hybrid`` (tuned; a discrete-node SAC): the actor gives a categorical pi(k | s) over the N nodes and a
+  tanh-Gaussian drag pi(d | s, k) for every node (agents/hybrid.py maps (k, d) onto the env's node action). Twin
+  critics Q(s, k, d) in ONE batched call (an ensemble of two networks, agents.sac.EnsembleLinear): a state trunk,
+  then a per-node head whose first layer adds a node embedding and the node's drag. The bootstrap target and the
+  actor loss take the expectation over the N nodes exactly (every node's drag sampled), as discrete SAC does
+  (Christodoulou 2019): V(s) = sum_k pi(k|s) [min_i Q_i(s, k, d_k) - a_d log pi(d_k|s,k) - a_k log pi(k|s)].
+  Two temperatures: a_k for the node (target entropy ``target_entropy_node`` nats) and a_d for the drag (target
+  ``target_entropy`` per node, default -2 = -dim, as SB3's -|A|).
 """
 from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -25,10 +37,12 @@ import torch.nn as nn
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from agents import hybrid
 from agents.buffer import ReplayBuffer
 from agents.common import (CHECKPOINT, EpisodeStats, Logger, ObsEncoder, eval_row, evaluate, fmt_postfix,
-                           load_checkpoint, make_env, make_params, mlp, rng_state, run_cli, save_checkpoint,
-                           seed_everything, set_rng_state, torch_threads, warn_if_large_buffer, write_results)
+                           evaluate_heldout, heldout_envs, load_checkpoint, make_env, make_params, mlp, rng_state,
+                           run_cli, save_checkpoint, seed_everything, set_rng_state, torch_threads,
+                           warn_if_large_buffer, write_results)
 
 
 # ====================================================================== config (defaults: params/sac.yaml)
@@ -45,6 +59,10 @@ class SACConfig:
     start: Any = None                     # None (random start) or a .npy path / (N, 2) list: a fixed start shape
     success_tol: float | None = None      # None: params' 0.01 m
     image_size: int = 64
+    success_bonus: float | None = None    # None: params' 20 (Algorithm 2)
+    step_penalty: float = 0.0
+    on_exit: str = "truncate"             # "fail": leaving the workspace terminates the episode
+    exit_penalty: float = 0.0
     # run
     total_steps: int = 100_000            # env transitions, all envs together
     num_envs: int = 16
@@ -55,9 +73,13 @@ class SACConfig:
     eval_every: int = 5_000
     eval_episodes: int = 20
     eval_seed: int = 10_000
+    eval_targets: list = dataclasses.field(default_factory=list)   # held-out targets evaluated at the end
     checkpoint_every: int = 10_000
     log_every: int = 100                  # gradient updates between train-loss rows
     # algorithm
+    policy: str = "gaussian"              # "hybrid" | "gaussian"
+    features: str = "raw"                 # "relative" | "raw"
+    normalize_obs: bool = False           # running mean/std of the features (relative features only)
     lr: float = 3e-4
     buffer_size: int = 1_000_000          # transitions (rows = buffer_size // num_envs)
     batch_size: int = 256
@@ -67,8 +89,10 @@ class SACConfig:
     train_freq: int = 1                   # batched env steps between update phases
     gradient_steps: int = 1               # updates per phase
     ent_coef_init: float = 1.0
-    target_entropy: float | None = None   # None: -|A|
+    target_entropy: float | None = None   # None: -|A| (gaussian) or -2 per node's drag (hybrid)
+    target_entropy_node: float = 0.5      # hybrid: target entropy of the node categorical [nats]
     hidden: list = dataclasses.field(default_factory=lambda: [256, 256])
+    head_hidden: int = 256                # hybrid: width of the critic's per-node head
     cnn_channels: list = dataclasses.field(default_factory=lambda: [32, 64, 64])
     features_dim: int = 256
     log_std_min: float = -5.0
@@ -76,43 +100,171 @@ class SACConfig:
 
 
 # ====================================================================== networks
-class Actor(nn.Module):
-    def __init__(self, obs_example: Any, action_dim: int, cfg: SACConfig, scale: float):
+class Features(nn.Module):
+    """The network input: target-relative features, running-normalized (agents/hybrid.py), or SB3's encoder
+    (flattened floats in rope lengths / NatureCNN on images)."""
+
+    def __init__(self, obs_example: Any, cfg: SACConfig, length: float):
         super().__init__()
-        self.enc = ObsEncoder(obs_example, scale, cfg.cnn_channels, cfg.features_dim)
-        self.trunk = mlp(self.enc.out_dim, cfg.hidden, None)
-        last = cfg.hidden[-1] if cfg.hidden else self.enc.out_dim
+        self.relative, self.length = cfg.features == "relative", length
+        if self.relative:
+            self.enc = None
+            self.out_dim = hybrid.relative_features(obs_example, length).shape[1]
+        else:
+            self.enc = ObsEncoder(obs_example, 1.0 / length, cfg.cnn_channels, cfg.features_dim)
+            self.out_dim = self.enc.out_dim
+        self.norm = hybrid.RunningNorm(self.out_dim) if cfg.normalize_obs else None
+
+    def forward(self, obs: Any) -> torch.Tensor:
+        x = hybrid.relative_features(obs, self.length) if self.relative else self.enc(obs)
+        return x if self.norm is None else self.norm(x)
+
+    def raw(self, obs: Any) -> torch.Tensor:
+        """Features before normalization (what RunningNorm.update takes)."""
+        return hybrid.relative_features(obs, self.length) if self.relative else self.enc(obs)
+
+
+def squashed_log_prob(u: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    """log-density of y = tanh(u), u ~ N(mean, exp(log_std)), summed over the last dimension."""
+    y = torch.tanh(u)
+    log_n = -0.5 * ((u - mean) / log_std.exp()) ** 2 - log_std - 0.5 * math.log(2 * math.pi)
+    return (log_n - torch.log(1 - y.pow(2) + 1e-6)).sum(-1)
+
+
+class Actor(nn.Module):
+    """Gaussian policy: a tanh-squashed Gaussian over the env's box [0, 1]^A."""
+
+    def __init__(self, obs_example: Any, action_dim: int, cfg: SACConfig, length: float):
+        super().__init__()
+        self.feat = Features(obs_example, cfg, length)
+        self.trunk = mlp(self.feat.out_dim, cfg.hidden, None)
+        last = cfg.hidden[-1] if cfg.hidden else self.feat.out_dim
         self.mean, self.log_std = nn.Linear(last, action_dim), nn.Linear(last, action_dim)
         self.lo, self.hi = cfg.log_std_min, cfg.log_std_max
 
     def forward(self, obs: Any, deterministic: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Actions in [0, 1]^A and their log-probabilities (B,)."""
-        h = self.trunk(self.enc(obs))
+        h = self.trunk(self.feat(obs))
         mean = self.mean(h)
         log_std = self.lo + 0.5 * (self.hi - self.lo) * (torch.tanh(self.log_std(h)) + 1)   # CleanRL's bound
-        std = log_std.exp()
-        u = mean if deterministic else mean + std * torch.randn_like(mean)
-        y = torch.tanh(u)
-        log_prob = (-0.5 * ((u - mean) / std) ** 2 - log_std - 0.5 * torch.log(torch.tensor(2 * torch.pi))).sum(-1)
-        log_prob = log_prob - torch.log(0.5 * (1 - y.pow(2)) + 1e-6).sum(-1)
-        return (y + 1) / 2, log_prob
+        u = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)
+        log_prob = squashed_log_prob(u, mean, log_std) + mean.shape[-1] * math.log(2.0)     # a = (y + 1) / 2
+        return (torch.tanh(u) + 1) / 2, log_prob
 
 
 class Critic(nn.Module):
-    """Twin Q networks on one encoder (SB3: the critic's features extractor is shared by its Q heads)."""
+    """Gaussian policy's twin Q networks Q(s, a) on one encoder (SB3 shares the critic's features extractor)."""
 
-    def __init__(self, obs_example: Any, action_dim: int, cfg: SACConfig, scale: float):
+    def __init__(self, obs_example: Any, action_dim: int, cfg: SACConfig, length: float):
         super().__init__()
-        self.enc = ObsEncoder(obs_example, scale, cfg.cnn_channels, cfg.features_dim)
-        self.q1 = mlp(self.enc.out_dim + action_dim, cfg.hidden, 1)
-        self.q2 = mlp(self.enc.out_dim + action_dim, cfg.hidden, 1)
+        self.feat = Features(obs_example, cfg, length)
+        self.q1 = mlp(self.feat.out_dim + action_dim, cfg.hidden, 1)
+        self.q2 = mlp(self.feat.out_dim + action_dim, cfg.hidden, 1)
 
     def forward(self, obs: Any, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.heads(self.enc(obs), action)
+        return self.heads(self.feat(obs), action)
 
     def heads(self, features: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = torch.cat([features, action], dim=1)
         return self.q1(x).squeeze(-1), self.q2(x).squeeze(-1)
+
+
+class HybridActor(nn.Module):
+    """pi(k | s) over the N nodes and a tanh-Gaussian drag pi(d | s, k) in [-1, 1]^2 for every node."""
+
+    def __init__(self, obs_example: Any, cfg: SACConfig, length: float, n_nodes: int):
+        super().__init__()
+        self.feat, self.n = Features(obs_example, cfg, length), n_nodes
+        self.trunk = mlp(self.feat.out_dim, cfg.hidden, None)
+        last = cfg.hidden[-1] if cfg.hidden else self.feat.out_dim
+        self.out = nn.Linear(last, n_nodes * 5)             # N logits, N x 2 means, N x 2 log-stds
+        self.lo, self.hi = cfg.log_std_min, cfg.log_std_max
+
+    def forward(self, obs: Any, deterministic: bool = False):
+        """(log pi(k|s) (B, N), drags d_k (B, N, 2) sampled for every node, their log pi(d_k|s,k) (B, N))."""
+        out = self.out(self.trunk(self.feat(obs)))
+        n = self.n
+        log_pk = torch.log_softmax(out[:, :n], dim=-1)
+        mean = out[:, n:3 * n].reshape(-1, n, 2)
+        log_std = self.lo + 0.5 * (self.hi - self.lo) * (torch.tanh(out[:, 3 * n:].reshape(-1, n, 2)) + 1)
+        u = mean if deterministic else mean + log_std.exp() * torch.randn_like(mean)
+        return log_pk, torch.tanh(u), squashed_log_prob(u, mean, log_std)
+
+    def act(self, obs: Any, deterministic: bool = False) -> torch.Tensor:
+        """Stored hybrid actions (B, 3) = (k, d_x, d_y): k sampled (argmax when deterministic)."""
+        log_pk, drags, _ = self(obs, deterministic)
+        node = log_pk.argmax(-1) if deterministic else torch.distributions.Categorical(logits=log_pk).sample()
+        return hybrid.join(node, drags[torch.arange(len(node), device=node.device), node])
+
+
+class EnsembleLinear(nn.Module):
+    """E independent linear layers applied in one batched matmul: (E, B, in) -> (E, B, out)."""
+
+    def __init__(self, ensemble: int, in_dim: int, out_dim: int):
+        super().__init__()
+        bound = 1.0 / math.sqrt(in_dim)                     # nn.Linear's default initialization
+        self.weight = nn.Parameter(torch.empty(ensemble, in_dim, out_dim).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(ensemble, 1, out_dim).uniform_(-bound, bound))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+class HybridCritic(nn.Module):
+    """Twin Q(s, k, d) in one call. A state trunk (E x MLP) gives z; the per-node head is
+    relu(W_z z + e_k + W_d d) -> linear, so z is computed once per state and each node costs one small layer."""
+
+    def __init__(self, obs_example: Any, cfg: SACConfig, length: float, n_nodes: int, ensemble: int = 2):
+        super().__init__()
+        self.feat, self.e = Features(obs_example, cfg, length), ensemble
+        dims = [self.feat.out_dim, *cfg.hidden]
+        self.trunk = nn.ModuleList(EnsembleLinear(ensemble, a, b) for a, b in zip(dims[:-1], dims[1:]))
+        h = cfg.head_hidden
+        self.head_z = EnsembleLinear(ensemble, dims[-1], h)
+        self.node_embed = nn.Parameter(torch.zeros(ensemble, 1, n_nodes, h))
+        self.head_d = nn.Parameter(torch.empty(ensemble, 2, h).uniform_(-1 / math.sqrt(2), 1 / math.sqrt(2)))
+        self.head_out = nn.Parameter(torch.empty(ensemble, h).uniform_(-1 / math.sqrt(h), 1 / math.sqrt(h)))
+        self.head_bias = nn.Parameter(torch.zeros(ensemble, 1, 1))
+
+    def state(self, features: torch.Tensor) -> torch.Tensor:
+        """(B, F) -> the per-critic state code (E, B, h): the node-free part of the head's first layer."""
+        z = features.unsqueeze(0).expand(self.e, -1, -1)
+        for layer in self.trunk:
+            z = F.relu(layer(z))
+        return self.head_z(z)
+
+    def all_nodes(self, z: torch.Tensor, drags: torch.Tensor) -> torch.Tensor:
+        """Q of every node with its own drag: z (E, B, h), drags (B, N, 2) -> (E, B, N)."""
+        pre = z.unsqueeze(2) + self.node_embed + torch.einsum("bnc,ech->ebnh", drags, self.head_d)
+        return torch.einsum("ebnh,eh->ebn", F.relu(pre), self.head_out) + self.head_bias
+
+    def taken(self, z: torch.Tensor, node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
+        """Q of the taken (node, drag): z (E, B, h), node (B,), drag (B, 2) -> (E, B)."""
+        pre = z + self.node_embed[:, 0, node] + torch.einsum("bc,ech->ebh", drag, self.head_d)
+        return torch.einsum("ebh,eh->eb", F.relu(pre), self.head_out) + self.head_bias[..., 0]
+
+
+# ====================================================================== update rules (tested on hand-computed cases)
+@torch.no_grad()
+def polyak_update(online: nn.Module, target: nn.Module, tau: float) -> None:
+    """target <- (1 - tau) target + tau online, parameter by parameter (buffers such as the normalizer copied)."""
+    for p, pt in zip(online.parameters(), target.parameters()):
+        pt.mul_(1 - tau).add_(p, alpha=tau)
+    for b, bt in zip(online.buffers(), target.buffers()):
+        bt.copy_(b)
+
+
+def temperature_loss(log_alpha: torch.Tensor, entropy: torch.Tensor, target_entropy: float) -> torch.Tensor:
+    """SAC's temperature objective: its gradient lowers log alpha while the policy's entropy is above the target
+    (d loss / d log alpha = mean(entropy) - target)."""
+    return (log_alpha * (entropy.detach() - target_entropy)).mean()
+
+
+def hybrid_soft_value(log_pk: torch.Tensor, q: torch.Tensor, log_pd: torch.Tensor, alpha_node: torch.Tensor,
+                      alpha_drag: torch.Tensor) -> torch.Tensor:
+    """V(s) = sum_k pi(k|s) [Q(s, k, d_k) - a_d log pi(d_k|s,k) - a_k log pi(k|s)], the exact expectation over the
+    nodes (the drags d_k sampled once per node); all (B, N) -> (B,)."""
+    return (log_pk.exp() * (q - alpha_drag * log_pd - alpha_node * log_pk)).sum(-1)
 
 
 # ====================================================================== training loop
@@ -128,23 +280,32 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
     seed_everything(cfg.seed)
     env = make_env(cfg, cfg.num_envs)
     eval_env = make_env(cfg, min(cfg.eval_episodes, 32))
+    heldout = heldout_envs(cfg)
     obs = env.reset(seed=cfg.seed)
-    scale = 1.0 / make_params(cfg).length
-    action_dim = env.core.action_dim
+    params = make_params(cfg)
+    n_nodes, action_dim = params.n_nodes, env.core.action_dim
+    is_hybrid = cfg.policy == "hybrid"
 
-    actor = Actor(obs, action_dim, cfg, scale).to(device)
-    critic = Critic(obs, action_dim, cfg, scale).to(device)
+    if is_hybrid:
+        actor = HybridActor(obs, cfg, params.length, n_nodes).to(device)
+        critic = HybridCritic(obs, cfg, params.length, n_nodes).to(device)
+    else:
+        actor = Actor(obs, action_dim, cfg, params.length).to(device)
+        critic = Critic(obs, action_dim, cfg, params.length).to(device)
     critic_target = copy.deepcopy(critic).requires_grad_(False)
-    log_alpha = torch.tensor(float(torch.log(torch.tensor(cfg.ent_coef_init))), device=device, requires_grad=True)
-    target_entropy = -float(action_dim) if cfg.target_entropy is None else float(cfg.target_entropy)
+    init = float(math.log(cfg.ent_coef_init))
+    log_alpha = torch.tensor(init, device=device, requires_grad=True)          # the drag's (hybrid) or the only one
+    log_alpha_node = torch.tensor(init, device=device, requires_grad=True)     # hybrid: the node's
+    target_entropy = (-2.0 if is_hybrid else -float(action_dim)) if cfg.target_entropy is None \
+        else float(cfg.target_entropy)
     actor_opt = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
     critic_opt = torch.optim.Adam(critic.parameters(), lr=cfg.lr)
-    alpha_opt = torch.optim.Adam([log_alpha], lr=cfg.lr)
+    alpha_opt = torch.optim.Adam([log_alpha, log_alpha_node], lr=cfg.lr)
     rows = max(2, cfg.buffer_size // cfg.num_envs)
     warn_if_large_buffer(rows, cfg.num_envs, obs)
     rb = ReplayBuffer(rows, cfg.num_envs, obs, action_dim, device)
     stats = EpisodeStats()
-    step, n_updates, last_eval, last_ckpt, wall_before = 0, 0, 0, 0, 0.0
+    step, n_updates, last_eval, last_ckpt, wall_before, update_s = 0, 0, 0, 0, 0.0, 0.0
     last_success: float | None = None
 
     if resume:
@@ -154,6 +315,7 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
         critic_target.load_state_dict(ck["critic_target"])
         with torch.no_grad():
             log_alpha.copy_(ck["log_alpha"])
+            log_alpha_node.copy_(ck["log_alpha_node"])
         actor_opt.load_state_dict(ck["actor_opt"])
         critic_opt.load_state_dict(ck["critic_opt"])
         alpha_opt.load_state_dict(ck["alpha_opt"])
@@ -162,22 +324,88 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
         obs = env.observe()
         stats.buf.extend(ck["episode_stats"])
         step, n_updates, last_eval, last_ckpt = ck["step"], ck["n_updates"], ck["last_eval"], ck["last_ckpt"]
-        last_success, wall_before = ck["last_success"], ck["wall_s"]
+        last_success, wall_before, update_s = ck["last_success"], ck["wall_s"], ck["update_s"]
         set_rng_state(ck["rng"])
     logger = Logger(out, resume_step=step if resume else None)
+    # one normalizer for actor and critics: the actor's is updated while collecting, the critics' are copies of it
+    norms = [m.feat.norm for m in (actor, critic, critic_target) if m.feat.norm is not None]
 
     def policy(o: Any, deterministic: bool) -> torch.Tensor:
+        if is_hybrid:
+            node, drag = hybrid.split(actor.act(o, deterministic))
+            return hybrid.to_env_action(node, drag, n_nodes)
         return actor(o, deterministic)[0]
 
     def checkpoint() -> None:
         save_checkpoint(out / CHECKPOINT, {
             "algo": "sac", "config": dataclasses.asdict(cfg), "actor": actor.state_dict(),
             "critic": critic.state_dict(), "critic_target": critic_target.state_dict(),
-            "log_alpha": log_alpha.detach().clone(), "actor_opt": actor_opt.state_dict(),
-            "critic_opt": critic_opt.state_dict(), "alpha_opt": alpha_opt.state_dict(), "buffer": rb.state_dict(),
-            "env": env.state_dict(), "episode_stats": list(stats.buf), "step": step, "n_updates": n_updates,
-            "last_eval": last_eval, "last_ckpt": last_ckpt, "last_success": last_success,
+            "log_alpha": log_alpha.detach().clone(), "log_alpha_node": log_alpha_node.detach().clone(),
+            "actor_opt": actor_opt.state_dict(), "critic_opt": critic_opt.state_dict(),
+            "alpha_opt": alpha_opt.state_dict(), "buffer": rb.state_dict(), "env": env.state_dict(),
+            "episode_stats": list(stats.buf), "step": step, "n_updates": n_updates, "last_eval": last_eval,
+            "last_ckpt": last_ckpt, "last_success": last_success, "update_s": update_s,
             "wall_s": wall_before + time.perf_counter() - t0, "rng": rng_state()})
+
+    def gaussian_update(b: dict[str, Any]) -> dict[str, torch.Tensor]:
+        alpha = log_alpha.exp().detach()
+        with torch.no_grad():
+            next_a, next_logp = actor(b["next_obs"])
+            q1_t, q2_t = critic_target(b["next_obs"], next_a)
+            q_next = torch.min(q1_t, q2_t) - alpha * next_logp
+            # Bootstrap unless TERMINATED: a truncated transition keeps gamma * Q(final_obs, .).
+            y = b["reward"] + cfg.gamma * (~b["terminated"]).float() * q_next
+        q1, q2 = critic(b["obs"], b["action"])
+        critic_loss = 0.5 * (F.mse_loss(q1, y) + F.mse_loss(q2, y))
+        critic_opt.zero_grad()
+        critic_loss.backward()
+        critic_opt.step()
+
+        a_pi, logp = actor(b["obs"])
+        with torch.no_grad():   # the actor loss needs dQ/da only: no backward through the critic's encoder
+            critic_features = critic.feat(b["obs"])
+        q1_pi, q2_pi = critic.heads(critic_features, a_pi)
+        actor_loss = (alpha * logp - torch.min(q1_pi, q2_pi)).mean()
+        actor_opt.zero_grad()
+        actor_loss.backward()
+        actor_opt.step()
+        alpha_loss = temperature_loss(log_alpha, -logp, target_entropy)
+        return {"actor_loss": actor_loss, "critic_loss": critic_loss, "alpha_loss": alpha_loss,
+                "q_mean": q1.mean(), "entropy": -logp.mean(), "ent_coef": alpha}
+
+    def hybrid_update(b: dict[str, Any]) -> dict[str, torch.Tensor]:
+        a_d, a_k = log_alpha.exp().detach(), log_alpha_node.exp().detach()
+        with torch.no_grad():
+            log_pk, drags, log_pd = actor(b["next_obs"])
+            q_next = critic_target.all_nodes(critic_target.state(critic_target.feat(b["next_obs"])), drags).min(0)[0]
+            y = b["reward"] + cfg.gamma * (~b["terminated"]).float() * hybrid_soft_value(log_pk, q_next, log_pd,
+                                                                                         a_k, a_d)
+        node, drag = hybrid.split(b["action"])
+        with torch.no_grad():
+            features = critic.feat(b["obs"])
+        z = critic.state(features)
+        q = critic.taken(z, node, drag)                                   # (2, B)
+        critic_loss = 0.5 * ((q - y) ** 2).mean(1).sum()
+        critic_opt.zero_grad()
+        critic_loss.backward()
+        critic_opt.step()
+
+        log_pk, drags, log_pd = actor(b["obs"])
+        with torch.no_grad():   # the actor loss needs dQ/dd only: the state code is a constant here
+            z = critic.state(features)
+        q_pi = critic.all_nodes(z, drags).min(0)[0]
+        actor_loss = -hybrid_soft_value(log_pk, q_pi, log_pd, a_k, a_d).mean()
+        actor_opt.zero_grad()
+        actor_loss.backward()
+        actor_opt.step()
+        pk = log_pk.detach().exp()
+        node_entropy = -(pk * log_pk.detach()).sum(-1)
+        drag_entropy = -(pk * log_pd.detach()).sum(-1)                   # E_k[-log pi(d_k | s, k)]
+        alpha_loss = (temperature_loss(log_alpha, drag_entropy, target_entropy)
+                      + temperature_loss(log_alpha_node, node_entropy, cfg.target_entropy_node))
+        return {"actor_loss": actor_loss, "critic_loss": critic_loss, "alpha_loss": alpha_loss,
+                "q_mean": q[0].mean(), "entropy": drag_entropy.mean(), "ent_coef": a_d,
+                "node_entropy": node_entropy.mean(), "ent_coef_node": a_k}
 
     t0 = time.perf_counter()
     res = None
@@ -186,15 +414,24 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
     while step < cfg.total_steps:
         # ---- act
         with torch.no_grad():
+            if norms:
+                x = actor.feat.raw(obs)
+                for norm in norms:
+                    norm.update(x)
             if step < cfg.learning_starts:
-                action = torch.rand(cfg.num_envs, action_dim, device=device)
+                if is_hybrid:
+                    action = hybrid.join(torch.randint(n_nodes, (cfg.num_envs,), device=device),
+                                         torch.rand(cfg.num_envs, 2, device=device) * 2 - 1)
+                else:
+                    action = torch.rand(cfg.num_envs, action_dim, device=device)
             else:
-                action = actor(obs)[0]
-        next_obs, reward, term, trunc, info, final_obs = env.step(action)
+                action = actor.act(obs) if is_hybrid else actor(obs)[0]
+        env_action = hybrid.to_env_action(*hybrid.split(action), n_nodes) if is_hybrid else action
+        next_obs, reward, term, trunc, info, final_obs = env.step(env_action)
         rb.add(obs, action, reward, term, trunc, final_obs=final_obs)
         done = (term | trunc).cpu()
         if bool(done.any()):
-            stats.add(info, done, term)
+            stats.add(info, done)
         obs = next_obs
         step += cfg.num_envs
         bar.update(cfg.num_envs)
@@ -202,43 +439,18 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
         # ---- learn
         if step >= cfg.learning_starts and (step // cfg.num_envs) % cfg.train_freq == 0:
             for _ in range(cfg.gradient_steps):
+                t_update = time.perf_counter()
                 b = rb.sample(cfg.batch_size)
-                alpha = log_alpha.exp().detach()
-                with torch.no_grad():
-                    next_a, next_logp = actor(b["next_obs"])
-                    q1_t, q2_t = critic_target(b["next_obs"], next_a)
-                    q_next = torch.min(q1_t, q2_t) - alpha * next_logp
-                    # Bootstrap unless TERMINATED: a truncated transition keeps gamma * Q(final_obs, .).
-                    y = b["reward"] + cfg.gamma * (~b["terminated"]).float() * q_next
-                q1, q2 = critic(b["obs"], b["action"])
-                critic_loss = 0.5 * (F.mse_loss(q1, y) + F.mse_loss(q2, y))
-                critic_opt.zero_grad()
-                critic_loss.backward()
-                critic_opt.step()
-
-                a_pi, logp = actor(b["obs"])
-                with torch.no_grad():   # the actor loss needs dQ/da only: no backward through the critic's encoder
-                    critic_features = critic.enc(b["obs"])
-                q1_pi, q2_pi = critic.heads(critic_features, a_pi)
-                actor_loss = (alpha * logp - torch.min(q1_pi, q2_pi)).mean()
-                actor_opt.zero_grad()
-                actor_loss.backward()
-                actor_opt.step()
-
-                alpha_loss = -(log_alpha * (logp.detach() + target_entropy)).mean()
+                logs = hybrid_update(b) if is_hybrid else gaussian_update(b)
                 alpha_opt.zero_grad()
-                alpha_loss.backward()
+                logs["alpha_loss"].backward()
                 alpha_opt.step()
-
-                with torch.no_grad():
-                    for p, pt in zip(critic.parameters(), critic_target.parameters()):
-                        pt.mul_(1 - cfg.tau).add_(p, alpha=cfg.tau)
+                polyak_update(critic, critic_target, cfg.tau)
+                update_s += time.perf_counter() - t_update
                 n_updates += 1
                 if n_updates % cfg.log_every == 0:
-                    logger.log("train", step, {"actor_loss": actor_loss.item(), "critic_loss": critic_loss.item(),
-                                               "ent_coef": alpha.item(), "ent_coef_loss": alpha_loss.item(),
-                                               "q_mean": q1.mean().item(), "entropy": -logp.mean().item(),
-                                               "n_updates": n_updates})
+                    row = {("ent_coef_loss" if k == "alpha_loss" else k): v.item() for k, v in logs.items()}
+                    logger.log("train", step, {**row, "n_updates": n_updates})
                     if stats.buf:
                         logger.log("rollout", step, stats.means())
 
@@ -257,7 +469,9 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
     if res is None:   # nothing left to train (resumed at the end): evaluate the loaded policy
         res = evaluate(policy, eval_env, cfg.eval_episodes, seed=cfg.eval_seed)
     logger.close()
-    return write_results(out, "sac", cfg, res, step, wall_before + time.perf_counter() - t0)
+    wall = wall_before + time.perf_counter() - t0                # training and its evaluations; not the held-out
+    return write_results(out, "sac", cfg, res, step, wall, heldout=evaluate_heldout(policy, heldout, cfg),
+                         extra={"n_updates": n_updates, "ms_per_update": 1000 * update_s / max(n_updates, 1)})
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -181,12 +181,15 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
                     cell = {"method": method, "variant": variant, "target": target, "seed": seed,
                             "kind": spec["kind"], "dir": str(d), "grid": grid["name"], "eval_seed": eval_seed,
                             "cwd": str(Path.cwd())}   # relative paths are relative to it (also on Ray workers)
+                    if spec["kind"] == "agent" and target in grid.get("heldout", {}):
+                        continue          # learners never train on a held-out shape (their rows: results "heldout")
                     if spec["kind"] == "planner":
                         base = ["-m", f"planners.{method}", *_flags(v.get("args")), "--quiet", "--no-gif"]
                         if target == "random":   # one run per episode, target drawn as the env would, then merged
                             cell["subruns"] = [["--target", "@random", "--seed", str(eval_seed + i), "--episodes", "1",
                                                 "--out", str(d / f"ep{i}")] for i in range(int(grid["episodes"]))]
-                        cell["argv"] = base + ["--target", target, "--seed", str(eval_seed), "--episodes",
+                        spec_target = grid.get("heldout", {}).get(target, target)       # a held-out name -> its file
+                        cell["argv"] = base + ["--target", spec_target, "--seed", str(eval_seed), "--episodes",
                                                str(grid["episodes"]), "--out", str(d)]
                     else:
                         sets = [x for k, val in (v.get("set") or {}).items() for x in ("--set", f"{k}={val}")]
@@ -388,6 +391,71 @@ def row_stats(runs: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def task_groups(done: list, target: str) -> dict[tuple[str, str, str], list]:
+    """The rows of one task: (method, variant, trained_on) -> [(cell, results)]. On a held-out shape a learner's row
+    is its trained policy evaluated there (results "heldout"), one row per task it was trained on."""
+    groups: dict[tuple[str, str, str], list] = {}
+    for c, r in done:
+        if c["target"] == target:
+            groups.setdefault((c["method"], c["variant"], target), []).append((c, r))
+    for c, r in done:
+        held = (r.get("heldout") or {}).get(target)
+        if held and c["target"] != target:
+            sub = dict(r, episodes=held["episodes"], success_rate=held["success_rate"])
+            groups.setdefault((c["method"], c["variant"], c["target"]), []).append((c, sub))
+    return groups
+
+
+def row_cost(method: str, runs: list[dict[str, Any]], st: dict[str, Any]) -> dict[str, Any]:
+    """Simulator moves and wall time of one row: to train (learners: training transitions, each one simulated
+    move; planners: none) and per episode (learners: the moves they execute; planners: their simulated
+    candidate moves plus the moves executed)."""
+    moves = float(np.mean([e["steps"] for r in runs for e in r["episodes"]]))
+    if st["sim_evals"] is not None:                                         # a planner
+        per_s = float(np.mean([r["wall_s"] / len(r["episodes"]) for r in runs]))
+        return {"train_moves": 0.0, "train_s": 0.0, "episode_moves": st["sim_evals"] + moves, "episode_s": per_s,
+                "moves": moves, "success": st["s1"][0]}
+    per = [r.get("eval_s_per_episode") for r in runs]
+    per_s = float(np.mean(per)) if all(x is not None for x in per) else float("nan")
+    return {"train_moves": st["env_steps"], "train_s": st["wall"], "episode_moves": moves, "episode_s": per_s,
+            "moves": moves, "success": st["s1"][0]}
+
+
+def payback(learner: dict[str, Any], planner: dict[str, Any], key: str) -> float:
+    """Episodes after which a learner (training + its episodes) has cost less than the planner (its episodes), in
+    simulator moves (key "moves") or wall seconds ("s"); inf if never, nan if unknown."""
+    train, per, per_p = learner[f"train_{key}"], learner[f"episode_{key}"], planner[f"episode_{key}"]
+    if any(math.isnan(x) for x in (train, per, per_p)):
+        return float("nan")
+    return train / (per_p - per) if per_p > per else float("inf")
+
+
+def cost_section(costs: dict[str, list[dict[str, Any]]], grid: dict[str, Any]) -> list[str]:
+    lines = ["## Planning against learning: what each costs", "",
+             "Simulator moves are one currency for both: a learner's training transitions and the moves of its "
+             "episodes, a planner's simulated candidate moves (sim evals) plus the moves it executes. **Pays back "
+             "after**: the number of episodes after which the learner, training included, has cost fewer simulator "
+             "moves (or seconds) than CEM on the same task (∞: never, its episodes cost more than CEM's). A "
+             "learner's seconds per episode are measured with its evaluation episodes run 20 at once (batched); a "
+             "planner's one episode at a time. Success counts at 1 cm; moves are over all episodes.", ""]
+    head = ["task", "method", "variant", "success @1 cm", "moves / episode", "sim moves to train",
+            "sim moves / episode", "wall s to train", "wall s / episode", "pays back after (sim moves; wall s)"]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for target, rows in costs.items():
+        cem = next((r for r in rows if r["method"] == "cem"), None)
+        for r in rows:
+            variant = r["variant"] + ("" if r["trained_on"] == target else f", trained on {r['trained_on']}")
+            pb = "—"
+            if cem is not None and r["train_moves"] > 0:
+                pb = "; ".join("∞" if math.isinf(x) else ("—" if math.isnan(x) else f"{x:.0f}")
+                               for x in (payback(r, cem, "moves"), payback(r, cem, "s")))
+            es = "—" if math.isnan(r["episode_s"]) else f"{r['episode_s']:.3g}"
+            lines.append("| " + " | ".join([target, r["method"], variant, f"{r['success']:.2f}", f"{r['moves']:.1f}",
+                                             f"{r['train_moves']:.0f}", f"{r['episode_moves']:.0f}",
+                                             f"{r['train_s']:.0f}", es, pb]) + " |")
+    return lines + [""]
+
+
 COLUMNS = ["method", "variant", "seeds × episodes", "success @1 cm: t-CI over seeds; Wilson pooled",
            "success @2 cm (final error < 2 cm): t-CI; Wilson", "final error [cm], t-CI",
            "moves to success (mean; n) (planners: to 2 cm)", "env steps / cell", "sim evals / episode", "wall s / cell (s / move)",
@@ -454,22 +522,24 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
                   + ". Rows below aggregate the finished seeds only; absent rows were not run.", ""]
     targets = [t for t in grid["targets"]]
     table: dict[str, list[dict[str, Any]]] = {}
+    costs: dict[str, list[dict[str, Any]]] = {}
     for target in targets:
-        groups: dict[tuple[str, str], list] = {}
-        for c, r in done:
-            if c["target"] == target:
-                groups.setdefault((c["method"], c["variant"]), []).append((c, r))
+        groups = task_groups(done, target)
         if not groups:
             continue
         lines += [f"## Task: {target}", "", "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
         details = []
-        for (method, variant), items in groups.items():
+        for (method, variant, trained_on), items in groups.items():
             st = row_stats([r for _, r in items])
+            costs.setdefault(target, []).append(dict(row_cost(method, [r for _, r in items], st),
+                                                     method=method, variant=variant, trained_on=trained_on))
             seeds = [c["seed"] for c, _ in items]
             devices = sorted({r.get("_learner_device") or "" for _, r in items})
             row_groups = [(d, [c["seed"] for c, r in items if (r.get("_learner_device") or "") == d]) for d in devices]
-            cmd = " ; ".join(harness_command(grid["name"], str(out), method, variant, target, sd, d or None)
+            cmd = " ; ".join(harness_command(grid["name"], str(out), method, variant, trained_on, sd, d or None)
                              for d, sd in row_groups)
+            if trained_on != target:
+                variant = f"{variant}, trained on {trained_on}"
             w = f"{st['wall']:.1f}" + (f" ({st['s_per_move']:.2f})" if st["s_per_move"] is not None else "")
             n_dev = sum(bool(r.get("_learner_device")) for _, r in items)
             if n_dev:
@@ -487,9 +557,11 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
                         for c, r in items]
         lines += ["", "<details><summary>Exact per-seed commands (what the harness ran)</summary>", "", *details, "",
                   "</details>", ""]
+    if costs:
+        lines += cost_section(costs, grid)
     if figures is not None:
         try:
-            figs = make_figures(grid, done, Path(figures))
+            figs = make_figures(grid, done, Path(figures)) + make_cost_figures(grid, costs, Path(figures))
         except ImportError:
             figs = []
         if figs:
@@ -638,6 +710,40 @@ def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
                 ax.set_title(title, fontsize=8)
             fig.suptitle(f"{target}: start and final shapes against the target (dashed), first seed{note}", fontsize=10)
             save(fig, f"gallery_{target}", dpi=70)
+    return written
+
+
+def make_cost_figures(grid: dict[str, Any], costs: dict[str, list[dict[str, Any]]], figdir: Path) -> list[Path]:
+    """Per task: cumulative simulator moves and wall seconds against episodes solved, planners and learners on the
+    same axes (a learner starts at its training cost; where its line crosses CEM's it has paid back)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figdir.mkdir(parents=True, exist_ok=True)
+    tag = "quick_" if grid["name"] == "quick" else ""
+    written = []
+    episodes = np.logspace(0, 4, 60)
+    for target, rows in costs.items():
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+        for ax, key, unit in ((axes[0], "moves", "simulator moves"), (axes[1], "s", "wall seconds")):
+            for r in rows:
+                if math.isnan(r[f"episode_{key}"]):
+                    continue
+                label = f"{r['method']}/{r['variant']}" + ("" if r["trained_on"] == target else f" ({r['trained_on']})")
+                ax.plot(episodes, r[f"train_{key}"] + episodes * r[f"episode_{key}"], label=f"{label}: {r['success']:.0%}")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("episodes run")
+            ax.set_ylabel(f"cumulative {unit}")
+            ax.legend(fontsize=6)
+        fig.suptitle(f"{target}: cost of planning vs learning (legend: success @1 cm)"
+                     + (" [QUICK RUN: format only]" if tag else ""), fontsize=9)
+        fig.tight_layout()
+        path = figdir / f"{tag}cost_{target}.png"
+        fig.savefig(path, dpi=60)
+        plt.close(fig)
+        written.append(path)
     return written
 
 

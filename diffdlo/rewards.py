@@ -63,12 +63,20 @@ def shape_error(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (a - b).norm(dim=-1).mean(-1)
 
 
+def reward_shape_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) ours, not the thesis's: 100 x (shape_error before - after) [m], i.e. the centimetres of shape error the
+    move removed. It measures progress in the success metric itself (translation-free, orientation-sensitive), so
+    an episode's undiscounted return telescopes to the error removed (in cm): no reward for drifting or for ending
+    an episode, and O(1) per move (a good move removes ~1-2 cm) without normalization."""
+    return 100.0 * (shape_error(prev_pos, target) - shape_error(pos, target))
+
+
 def is_success(pos: torch.Tensor, target: torch.Tensor, tol: float = 0.01) -> torch.Tensor:
     """(B,) bool: shape_error < tol (default 1 cm, 2% of the rope length)."""
     return shape_error(pos, target) < tol
 
 
-REWARDS = ("position_orientation", "abs_diff", "delta_gain")
+REWARDS = ("position_orientation", "abs_diff", "delta_gain", "shape_gain")
 
 
 def reward(kind: str, prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -79,4 +87,6 @@ def reward(kind: str, prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.T
         return reward_abs_diff(pos, target)
     if kind == "delta_gain":
         return reward_delta_gain(prev_pos, pos, target)
+    if kind == "shape_gain":
+        return reward_shape_gain(prev_pos, pos, target)
     raise ValueError(f"unknown reward {kind!r}: use one of {list(REWARDS)}")

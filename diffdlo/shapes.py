@@ -14,6 +14,12 @@ from .params import CableParams
 # Named targets: a straight rope of full length through the origin, node 0 first, at this angle [deg].
 TARGET_ANGLES = {"horizontal": 0.0, "vertical": 90.0, "diagonal": 45.0, "antidiagonal": 135.0}
 TARGET_NAMES = tuple(TARGET_ANGLES)
+# Target families drawn anew at every reset from the env's generator: "random" (one of the named straight targets,
+# the thesis's task) and "random_curve" (a smooth random curve, random_curve below).
+TARGET_FAMILIES = ("random", "random_curve")
+# random_curve: the largest turning angle at an interior node [deg]. The S-curve of planners/targets turns up to
+# ~15 deg per node; 12 deg keeps every drawn curve gentler than that (a 20-node rope can turn 216 deg in all).
+CURVE_MAX_TURN_DEG = 12.0
 # A custom target's links may differ from the rope's rest length by at most this fraction.
 LINK_TOLERANCE = 0.10
 
@@ -42,6 +48,30 @@ def random_shape(batch: int, p: CableParams, generator: torch.Generator | None =
     first = (torch.rand(batch, 1, generator=generator, dtype=torch.float64) * 2 - 1) * math.pi
     turns = p.sigma * torch.randn(batch, p.n_nodes - 2, generator=generator, dtype=torch.float64)
     angles = torch.cat([first, first + turns.cumsum(dim=1)], dim=1)
+    return polyline_from_angles(angles, p.rest_length).to(device=device, dtype=dtype)
+
+
+def random_curve(batch: int, p: CableParams, generator: torch.Generator | None = None,
+                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(B, N, 2) smooth random target curves at the rope's link length, centred at the origin.
+
+    The turning angle along the rope is a random smooth function of the arc length s in [0, 1],
+    turn(s) = c0 + c1 sin(pi s + phi1) + c2 sin(2 pi s + phi2), with c0 ~ U(-1, 1) M / 2, c1 ~ U(-1, 1) M,
+    c2 ~ U(-1, 1) M / 2, phi ~ U(0, 2 pi), clipped to +-M = CURVE_MAX_TURN_DEG, and the first link points in a
+    uniform random direction. The family holds straight lines, arcs, S-curves, hooks and waves: the named targets,
+    planners/targets/arc.npy and s_curve.yaml are members of it (as limits), never drawn exactly. Drawn on the CPU
+    in float64 from ``generator``, so a seed gives the same curves on every device.
+    """
+    if not isinstance(batch, int) or batch < 1:
+        raise ValueError(f"batch must be a positive integer, got {batch!r}")
+    m = math.radians(CURVE_MAX_TURN_DEG)
+    u = torch.rand(batch, 6, generator=generator, dtype=torch.float64)
+    c0, c1, c2 = (u[:, 0:1] * 2 - 1) * m / 2, (u[:, 1:2] * 2 - 1) * m, (u[:, 2:3] * 2 - 1) * m / 2
+    phi1, phi2 = u[:, 3:4] * 2 * math.pi, u[:, 4:5] * 2 * math.pi
+    s = torch.linspace(0.0, 1.0, p.n_nodes - 2, dtype=torch.float64).unsqueeze(0)
+    turn = (c0 + c1 * torch.sin(math.pi * s + phi1) + c2 * torch.sin(2 * math.pi * s + phi2)).clamp(-m, m)
+    first = (u[:, 5:6] * 2 - 1) * math.pi
+    angles = torch.cat([first, first + turn.cumsum(dim=1)], dim=1)
     return polyline_from_angles(angles, p.rest_length).to(device=device, dtype=dtype)
 
 

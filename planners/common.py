@@ -3,7 +3,8 @@
 A planner has ``name``, ``sim_evals`` (rope-moves it has simulated), ``reset()`` (new episode) and
 ``plan(pos (N, 2), target (N, 2)) -> action (3,)`` (an env node action in [0, 1]^3); ``run_episode`` executes
 its first action in ``BatchedShapeControl`` and replans until success (shape_error < success_tol) or max_steps.
-Episode i starts from ``env.reset(seed=seed + i)``.
+Episode i starts from ``env.reset(seed=seed + i)``; with ``--target random`` or ``random_curve`` (a family in
+diffdlo.shapes.TARGET_FAMILIES) that reset also draws episode i's target, recorded under the episode in results.json.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from tqdm import tqdm
 
 from diffdlo.envs.shape_control import BatchedShapeControl
 from diffdlo.params import ParamsError, load_params
-from diffdlo.shapes import TARGET_NAMES, TargetError
+from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
 
 DEFAULT_MAX_STEPS = 15
 
@@ -44,7 +45,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         steps += 1
         frames.append(env.pos[0].clone())
         errors.append(float(info["shape_error"][0]))
-        success = bool(term[0])
+        success = bool(info["is_success"][0])
         bar.update(1)
         bar.set_postfix(err_cm=f"{errors[-1] * 100:.2f}", node=int(info["node"][0]))
         if bool(trunc[0]):
@@ -55,15 +56,17 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         stats["grad_evals"] -= grad0
     return {**stats, "success": success, "steps": steps, "final_error": errors[-1], "start_error": errors[0],
             "errors": errors, "sim_evals": planner.sim_evals - evals0, "plan_s": plan_s,
-            "plan_s_per_step": plan_s / max(steps, 1), "seed": seed, "frames": torch.stack(frames)}
+            "plan_s_per_step": plan_s / max(steps, 1), "seed": seed, "frames": torch.stack(frames),
+            "target_points": target}
 
 
 def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=f"python -m planners.{name}", description=doc,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--target", default="diagonal",
-                        help=f"one of {list(TARGET_NAMES)} or a path to an (N, 2) .npy/.yaml polyline of the rope's "
-                             f"link lengths (default diagonal)")
+                        help=f"one of {list(TARGET_NAMES)}, a family drawn anew per episode {list(TARGET_FAMILIES)} "
+                             f"(episode i's target is the one env.reset(seed=SEED + i) draws), or a path to an (N, 2) "
+                             f".npy/.yaml polyline of the rope's link lengths (default diagonal)")
     parser.add_argument("--seed", type=int, default=0, help="episode i starts from env.reset(seed=SEED + i) (default 0)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes (default 1)")
     parser.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS,
@@ -92,14 +95,18 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
                                   params=p, device=args.device)
     except (ValueError, RuntimeError) as exc:
         parser.error(str(exc))
-    try:
-        target = env.sim.target_shape(args.target)
-    except TargetError as exc:
-        print(f"error: bad --target {args.target!r}: {exc}", file=sys.stderr)
-        return 2
-    env.target_spec = target
+    if args.target in TARGET_FAMILIES:
+        target = None                                       # drawn by every env.reset(seed=SEED + i)
+        env.target_spec = args.target
+    else:
+        try:
+            target = env.sim.target_shape(args.target)
+        except TargetError as exc:
+            print(f"error: bad --target {args.target!r}: {exc}", file=sys.stderr)
+            return 2
+        env.target_spec = target
     planner = planner_cls.from_args(env.sim, args)
-    label = Path(args.target).stem if args.target not in TARGET_NAMES else args.target
+    label = args.target if args.target in TARGET_NAMES or args.target in TARGET_FAMILIES else Path(args.target).stem
     out = Path(args.out or f"runs/{name}-{label}")
     out.mkdir(parents=True, exist_ok=True)
 
@@ -113,13 +120,20 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     return 0
 
 
-def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor, episodes: list[dict], wall: float):
+def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor | None, episodes: list[dict],
+                  wall: float):
+    """results.json, shapes.png and the GIFs. ``target`` None: the target was drawn per episode (a family), so each
+    episode's own target (its "target_points") is drawn and recorded under the episode as "target" ([[x, y], ...])."""
     from diffdlo import render
 
     n = len(episodes)
     steps = sum(e["steps"] for e in episodes)
     plan_s = sum(e["plan_s"] for e in episodes)
-    records = [{k: v for k, v in e.items() if k != "frames"} for e in episodes]
+    records = [{k: v for k, v in e.items() if k not in ("frames", "target_points")} for e in episodes]
+    if target is None:
+        for rec, e in zip(records, episodes):
+            rec["target"] = e["target_points"].detach().cpu().to(torch.float64).tolist()
+    targets = [e["target_points"] if target is None else target for e in episodes]
     results = {
         "method": name, "target": args.target, "seed": args.seed,
         "success_rate": sum(e["success"] for e in episodes) / n,
@@ -129,16 +143,17 @@ def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor, 
         "config": {k: v for k, v in vars(args).items() if k not in ("out", "quiet")},
     }
     (out / "results.json").write_text(json.dumps(results, indent=2))
-    ropes, titles = [], []
+    ropes, rope_targets, titles = [], [], []
     for i, e in enumerate(episodes):
         ropes += [e["frames"][0], e["frames"][-1]]
+        rope_targets += [targets[i], targets[i]]
         titles += [f"ep {i} (seed {e['seed']}) start: {e['start_error'] * 100:.1f} cm",
                    f"after {e['steps']} moves: {e['final_error'] * 100:.2f} cm"]
     png = out / "shapes.png"
-    render.plot_ropes(torch.stack(ropes), target, png, titles=titles, cols=2)
+    render.plot_ropes(torch.stack(ropes), torch.stack(rope_targets), png, titles=titles, cols=2)
     if not args.no_gif:
         for i, e in enumerate(episodes):
-            render.save_gif(e["frames"], out / f"episode_{i}.gif", target, fps=2, title=f"{name} ep {i}")
+            render.save_gif(e["frames"], out / f"episode_{i}.gif", targets[i], fps=2, title=f"{name} ep {i}")
     succ = [e for e in episodes if e["success"]]
     moves = f"{sum(e['steps'] for e in succ) / len(succ):.1f}" if succ else "-"
     print(f"{name} {label}: success {len(succ)}/{n}, moves to success (mean) {moves}, final error mean "

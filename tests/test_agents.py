@@ -13,7 +13,8 @@ from agents.common import CHECKPOINT, evaluate, load_config, make_env, read_csv
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
 SMALL = {"sac": ["--set", "hidden=[32,32]", "--set", "batch_size=32", "--set", "learning_starts=64"],
-         "ppo": ["--set", "hidden=[32,32]", "--set", "n_steps=16", "--set", "n_epochs=2", "--set", "batch_size=32"]}
+         "ppo": ["--set", "hidden=[32,32]", "--set", "n_steps=16", "--set", "n_epochs=2", "--set", "batch_size=32",
+                 "--set", "anneal_lr=false"]}   # the lr schedule spans --total-steps: extending a run changes it
 MODULES = {"sac": sac, "ppo": ppo}
 
 
@@ -38,6 +39,37 @@ def test_resume_equals_uninterrupted(algo, tmp_path):
     assert ra["episodes"] == rb["episodes"] and rb["env_steps"] == 384
     n_after = [r for r in read_csv(b / "train.csv") if float(r["step"]) > 256]
     assert n_after and all(r["step"] != "999999" for r in n_after)
+
+
+@pytest.mark.parametrize("algo", ["sac", "ppo"])
+def test_a_killed_run_resumes_exactly_with_its_normalizer_and_lr_schedule(algo, tmp_path, monkeypatch):
+    """Killed right after its checkpoint at 256 of 384 steps, resumed to the same --total-steps: every CSV row equals
+    the uninterrupted run's (the tuned presets: running normalizer, PPO's annealed lr)."""
+    m = MODULES[algo]
+    a, b = tmp_path / "a", tmp_path / "b"
+    def args(out):
+        return [("anneal_lr=true" if x == "anneal_lr=false" else x) for x in argv(algo, out, 384)]
+
+    assert m.main(args(a)) == 0
+    real_save = m.save_checkpoint
+
+    def save_then_die(path, state):
+        real_save(path, state)
+        if state["step"] >= 256:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(m, "save_checkpoint", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        m.main(args(b))
+    monkeypatch.setattr(m, "save_checkpoint", real_save)
+    ck = torch.load(b / CHECKPOINT, weights_only=False)
+    assert ck["step"] == 256
+    norm = ck["agent" if algo == "ppo" else "actor"]
+    assert float(norm[[k for k in norm if k.endswith("norm.count")][0]]) > 1    # the statistics were saved
+    assert m.main(["--out", str(b), "--resume", "--total-steps", "384", "--no-progress"]) == 0
+    for name in ("train.csv", "eval.csv", "rollout.csv"):
+        assert (a / name).read_text() == (b / name).read_text(), name
+    assert json.loads((a / "results.json").read_text())["episodes"] == json.loads((b / "results.json").read_text())["episodes"]
 
 
 def easy_setup(tmp_path):
@@ -74,6 +106,8 @@ def test_learns_one_move_task_better_than_random(algo, tmp_path):
 def test_cli_smoke_writes_everything_and_resumes(algo, obs, action, tmp_path, capsys):
     m = MODULES[algo]
     extra = ["--obs", obs, "--action", action, "--target", "random"]
+    if action == "pixel":                 # the tuned presets' hybrid head and relative features need points
+        extra += ["--preset", "sb3-default"]
     if obs.startswith("image"):
         extra += ["--set", "image_size=40", "--set", "cnn_channels=[4,8,8]", "--set", "features_dim=32"]
         extra += ["--set", "buffer_size=4096"] if algo == "sac" else []

@@ -23,20 +23,21 @@ def quick(tmp_path_factory):
 
 
 def parse_tables(md: str) -> dict[str, list[dict[str, str]]]:
-    tables, target, header = {}, None, None
+    """The per-task tables of a report and their (shared) header."""
+    tables, target, header, first = {}, None, None, None
     for line in md.splitlines():
         m = re.match(r"## Task: (\S+)", line)
-        if m:
-            target, header = m.group(1), None
+        if m or line.startswith("## "):
+            target, header = (m.group(1) if m else None), None
             continue
         if target and line.startswith("|"):
             cells = [c.strip() for c in line.strip().strip("|").split(" | ")]
             if header is None:
-                header = cells
+                header, first = cells, first or cells
             elif not set(line.replace("|", "").strip()) <= {"-"}:
                 assert len(cells) == len(header), line
                 tables.setdefault(target, []).append(dict(zip(header, cells)))
-    return tables, header
+    return tables, first
 
 
 def test_t_quantile_and_intervals_match_hand_computed():
@@ -60,11 +61,19 @@ def test_grid_is_data_and_filters_work(tmp_path):
     cells = compare.build_cells(full, tmp_path)
     assert len(full["seeds"]) >= 5
     assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "planet"}
-    assert {"horizontal", "vertical", "diagonal", "antidiagonal", "random"} == {c["target"] for c in cells}
-    assert {c["variant"] for c in cells if c["method"] == "sac"} == {"points", "points_utd1", "image", "abs_diff",
-                                                                          "delta_gain"}
+    heldout = set(full["heldout"])
+    assert {"horizontal", "vertical", "diagonal", "antidiagonal", "random", "random_curve"} | heldout \
+        == {c["target"] for c in cells}
+    assert not any(c["target"] in heldout for c in cells if c["kind"] == "agent")     # no learner trains on them
+    arc = compare.build_cells(full, tmp_path, methods=["cem"], targets=["arc"], seeds=[0])[0]
+    assert arc["argv"][arc["argv"].index("--target") + 1] == "planners/targets/arc.npy"
+    assert {c["variant"] for c in cells if c["method"] == "sac"} == {"tuned", "points", "points_utd1", "image",
+                                                                          "abs_diff", "delta_gain"}
     sel = compare.build_cells(full, tmp_path, methods=["sac"], targets=["random"], seeds=[3])
-    assert len(sel) == 5 and all(c["seed"] == 3 for c in sel)
+    assert len(sel) == 6 and all(c["seed"] == 3 for c in sel)
+    for c in sel:                                                 # the baselines keep SB3's settings explicitly
+        preset = c["argv"][c["argv"].index("--preset") + 1] if "--preset" in c["argv"] else "tuned"
+        assert preset == ("tuned" if c["variant"] == "tuned" else "sb3-default")
     # each seed seeds the learner, its evaluation starts, and the planners' starts and generators
     c = sel[0]
     assert c["argv"][c["argv"].index("--seed") + 1] == "3" and "eval_seed=13000" in c["argv"]
@@ -107,6 +116,41 @@ def test_quick_run_writes_a_well_formed_table(quick):
     figs = sorted(p.name for p in (root / "fig").glob("*.png"))
     assert "quick_curves_sac_diagonal.png" in figs and "quick_gallery_diagonal.png" in figs
     assert "quick_planner_error_vs_evals_diagonal.png" in figs and "quick_success_vs_steps_diagonal.png" in figs
+
+
+def test_cost_section_puts_planners_and_learners_in_one_currency(quick):
+    root, _ = quick
+    md = (root / "RESULTS.md").read_text()
+    section = md.split("## Planning against learning: what each costs")[1].split("\n## ")[0]
+    rows = [[c.strip() for c in line.strip().strip("|").split(" | ")] for line in section.splitlines()
+            if line.startswith("| diagonal")]
+    by = {r[1]: r for r in rows}
+    assert set(by) == {"greedy", "cem", "sac"}
+    cells = root / "cells"
+    cem = json.loads((cells / "cem/default/diagonal/seed0/results.json").read_text())
+    sac = json.loads((cells / "sac/points/diagonal/seed0/results.json").read_text())
+    cem_moves = sum(e["steps"] for e in cem["episodes"]) / len(cem["episodes"])
+    cem_per_ep = cem["sim_evals"] / len(cem["episodes"]) + cem_moves           # simulated + executed moves
+    assert float(by["cem"][6]) == pytest.approx(cem_per_ep, abs=0.5) and by["cem"][5] == "0"
+    sac_per_ep = sum(e["steps"] for e in sac["episodes"]) / len(sac["episodes"])
+    assert by["sac"][5] == "64" and float(by["sac"][6]) == pytest.approx(sac_per_ep, abs=0.05)
+    expected = 64 / (cem_per_ep - sac_per_ep)                                  # episodes until SAC is cheaper
+    assert float(by["sac"][9].split(";")[0]) == pytest.approx(expected, abs=0.5)
+    assert compare.payback({"train_moves": 100.0, "episode_moves": 5.0}, {"episode_moves": 3.0}, "moves") == math.inf
+    assert "quick_cost_diagonal.png" in {p.name for p in (root / "fig").glob("*.png")}
+
+
+def test_heldout_rows_come_from_the_learners_trained_elsewhere():
+    cell = {"target": "random_curve", "method": "ppo", "variant": "tuned"}
+    res = {"episodes": [{"success": True, "steps": 4, "final_error": 0.005}],
+           "heldout": {"arc": {"episodes": [{"success": False, "steps": 100, "final_error": 0.05}],
+                               "success_rate": 0.0}}}
+    planner = ({"target": "arc", "method": "cem", "variant": "default"}, {"episodes": []})
+    groups = compare.task_groups([(cell, res), planner], "arc")
+    assert set(groups) == {("cem", "default", "arc"), ("ppo", "tuned", "random_curve")}
+    (_, sub), = groups[("ppo", "tuned", "random_curve")]
+    assert sub["episodes"] == res["heldout"]["arc"]["episodes"]
+    assert set(compare.task_groups([(cell, res), planner], "random_curve")) == {("ppo", "tuned", "random_curve")}
 
 
 def test_resume_skips_finished_cells(quick, capsys):

@@ -104,6 +104,7 @@ def test_rewards_hand_computed(small, reward):
     s = rope[:, 0].numpy()                                       # node i at (s_i, 0), target node i at (0, s_i)
     expect = {"abs_diff": -math.sqrt(2) * np.abs(s).sum(),
               "delta_gain": 0.0,
+              "shape_gain": 0.0,                                 # the rope stays put: no error removed
               # P = 0 (both straight, same links); O: angle(rope) = pi, angle(target) = -pi/2 -> |3pi/2| wrapped
               "position_orientation": -math.pi / 2}[reward]
     assert r == pytest.approx(expect, abs=1e-4)

@@ -200,3 +200,31 @@ def test_bad_target_exit_code_subprocess():
     res = subprocess.run([sys.executable, "-m", "planners.gradient", "--target", "spiral"], capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 2 and "bad --target 'spiral'" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("family", ["random_curve", "random"])
+def test_cli_family_target_draws_each_episodes_target_from_its_reset(family, tmp_path, capsys):
+    out = tmp_path / family
+    rc = cem_mod.main(["--target", family, "--seed", "3", "--episodes", "2", "--max-steps", "2", "--out", str(out),
+                       "--quiet", "--no-gif", *TINY["cem"]])
+    assert rc == 0
+    r = json.loads((out / "results.json").read_text())
+    assert r["target"] == family and len(r["episodes"]) == 2
+    recorded = [torch.tensor(ep["target"], dtype=torch.float64) for ep in r["episodes"]]
+    env = BatchedShapeControl(1, target=family)
+    for i, got in enumerate(recorded):
+        assert r["episodes"][i]["seed"] == 3 + i
+        env.reset(seed=3 + i)
+        assert torch.equal(got, env.target[0].double())
+    if family == "random_curve":
+        assert (recorded[0] - recorded[1]).abs().max() > 1e-3
+    assert (out / "shapes.png").stat().st_size > 0
+    assert f"cem {family}: success" in capsys.readouterr().out
+
+
+def test_cli_fixed_target_records_no_per_episode_target(tmp_path):
+    out = tmp_path / "fixed"
+    assert cem_mod.main(["--target", "vertical", "--max-steps", "1", "--out", str(out), "--quiet", "--no-gif",
+                         *TINY["cem"]]) == 0
+    (ep,) = json.loads((out / "results.json").read_text())["episodes"]
+    assert "target" not in ep

@@ -20,7 +20,7 @@ from gymnasium.utils import seeding
 from .. import image as rimage
 from ..params import CableParams, load_params
 from ..rewards import REWARDS, orientation_error, reward as compute_reward, shape_error
-from ..shapes import TARGET_NAMES, TargetError
+from ..shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve
 from ..simulator import Simulator
 
 OBS_TYPES = ("points", "distance", "image", "image_single")
@@ -33,6 +33,7 @@ ACTION_DIMS = {"node": 3, "pixel": 4}
 DEFAULT_VIEW_SIZE = 1.0
 RENDER_SIZE = 256
 INFO_KEYS = ("shape_error", "orientation_error", "is_success", "node", "substeps")
+EXIT_RULES = ("truncate", "fail")
 
 
 def _choice_error(what: str, value: Any, allowed: Sequence[str]) -> ValueError:
@@ -71,8 +72,10 @@ class BatchedShapeControl:
 
     Arguments (shared by the gymnasium envs):
       num_envs: B.
-      target: "random" (one of TARGET_NAMES drawn at every reset, the thesis's default), a name in TARGET_NAMES,
-        an (N, 2) array/tensor, or a .npy/.yaml path.
+      target: "random" (one of TARGET_NAMES drawn at every reset, the thesis's default), "random_curve" (a smooth
+        random curve drawn at every reset, diffdlo.shapes.random_curve), a name in TARGET_NAMES, an (N, 2)
+        array/tensor, or a .npy/.yaml path. Drawn targets come from the env's per-env generator, seeded like the
+        start shapes.
       obs_type: "points" (dict node_poses, target_poses (N, 2) float32: the multi-input observation),
         "distance" ((N, 2) float32 rope - target per node: the single-input observation), "image" (dict
         image, target_image: RGB uint8 (S, S, 3) of the rope and of the target) or "image_single" (dict
@@ -81,21 +84,31 @@ class BatchedShapeControl:
         params.action_scale) or "pixel" (eq 2.5, [0, 1]^4: (a0, a1) = (column, row) fractions of the image view
         window, row 0 at the top; the node nearest to that point is grasped; dx, dy as for "node").
         Actions outside [0, 1] are clipped to [0, 1]; NaN/inf or a wrong shape raise ValueError.
-      reward: one of diffdlo.REWARDS ("position_orientation" eq 2.9-2.11, "abs_diff" eq 2.7, "delta_gain" eq 2.8).
+      reward: one of diffdlo.REWARDS ("position_orientation" eq 2.9-2.11, "abs_diff" eq 2.7, "delta_gain" eq 2.8,
+        "shape_gain": ours, the centimetres of shape error a move removed).
       max_steps, success_tol: default params.max_episode_steps and params.success_tol.
       params: CableParams, params name or YAML path. image_size: S (default 64). view_size: side [m] of the square
         view window centred at the origin (default 1.0). device, dtype, backend: of the simulator
         (backend "torch" forces the eager reference path).
-    Episode end (Algorithm 2 with the error metric): terminated, with reward params.success_bonus, when
+      success_bonus: reward of the successful move (default params.success_bonus = 20, Algorithm 2).
+      step_penalty: subtracted from the reward of every move that does not succeed (default 0: the thesis's).
+      on_exit: what happens when a node leaves the workspace: "truncate" (default, the thesis's Algorithm 2: the
+        episode is cut off, a learner bootstraps as after a time limit) or "fail" (ours: the episode TERMINATES
+        with reward -exit_penalty, so leaving pays nothing more, ever; success is still only is_success).
+      exit_penalty: the reward of a move that leaves the workspace under on_exit="fail" is -exit_penalty
+        (default 0).
+    Episode end (Algorithm 2 with the error metric): terminated, with reward success_bonus, when
     shape_error < success_tol; otherwise truncated at max_steps or when any node leaves the params.workspace
-    rectangle centred at the origin.
+    rectangle centred at the origin (terminated instead, under on_exit="fail"). ``info["is_success"]`` tells a
+    success from a failure: ``terminated`` alone does not, under on_exit="fail".
     """
 
     def __init__(self, num_envs: int = 1, target: Any = "random", obs_type: str = "points", action_type: str = "node",
                  reward: str = "position_orientation", max_steps: int | None = None, success_tol: float | None = None,
                  params: CableParams | str | Path | None = None, image_size: int = 64,
                  view_size: float = DEFAULT_VIEW_SIZE, device: torch.device | str = "cpu",
-                 dtype: torch.dtype = torch.float32, backend: str = "auto"):
+                 dtype: torch.dtype = torch.float32, backend: str = "auto", success_bonus: float | None = None,
+                 step_penalty: float = 0.0, on_exit: str = "truncate", exit_penalty: float = 0.0):
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if not isinstance(obs_type, str) or obs_type not in OBS_TYPES:
@@ -116,6 +129,15 @@ class BatchedShapeControl:
             raise ValueError(f"image_size must be an integer >= 8, got {image_size!r}")
         if not isinstance(view_size, (int, float)) or not view_size > 0 or not np.isfinite(view_size):
             raise ValueError(f"view_size must be a positive number [m], got {view_size!r}")
+        success_bonus = p.success_bonus if success_bonus is None else success_bonus
+        for name, v in (("success_bonus", success_bonus), ("step_penalty", step_penalty),
+                        ("exit_penalty", exit_penalty)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise ValueError(f"{name} must be a finite number, got {v!r}")
+        if not isinstance(on_exit, str) or on_exit not in EXIT_RULES:
+            raise _choice_error("on_exit", on_exit, EXIT_RULES)
+        self.success_bonus, self.step_penalty = float(success_bonus), float(step_penalty)
+        self.on_exit, self.exit_penalty = on_exit, float(exit_penalty)
         self.num_envs = int(num_envs)
         self.obs_type, self.action_type, self.reward_type = obs_type, action_type, reward
         self.max_steps, self.success_tol = int(max_steps), float(success_tol)
@@ -146,16 +168,16 @@ class BatchedShapeControl:
 
     # ----------------------------------------------------------------- configuration
     def _check_target(self, spec: Any) -> Any:
-        """'random' or a fixed target; returns 'random' or an (N, 2) tensor. Raises ValueError (TargetError)."""
-        if isinstance(spec, str) and spec == "random":
-            return "random"
+        """A family in TARGET_FAMILIES (returned as is) or a fixed target (an (N, 2) tensor). Raises TargetError."""
+        if isinstance(spec, str) and spec in TARGET_FAMILIES:
+            return spec
         if isinstance(spec, str) and spec in self._named:
             return self._named[spec]
         try:
             return self.sim.target_shape(spec)
         except TargetError as exc:
             raise TargetError(f"bad target {spec if isinstance(spec, (str, Path)) else type(spec).__name__!r}: "
-                              f"{exc} (allowed: 'random', {list(TARGET_NAMES)}, an (N, 2) array or a "
+                              f"{exc} (allowed: {list(TARGET_FAMILIES)}, {list(TARGET_NAMES)}, an (N, 2) array or a "
                               f".npy/.yaml path)") from exc
 
     def _make_observation_space(self) -> spaces.Space:
@@ -213,8 +235,11 @@ class BatchedShapeControl:
                 if self.rngs[i] is None:
                     self.rngs[i] = seeding.np_random(None)[0]
                 rng = self.rngs[i]
-                if isinstance(self.target_spec, str):                       # "random"
+                if isinstance(self.target_spec, str) and self.target_spec == "random":
                     targets.append(self._named[TARGET_NAMES[int(rng.integers(len(TARGET_NAMES)))]])
+                elif isinstance(self.target_spec, str):                      # "random_curve"
+                    curve_gen = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
+                    targets.append(random_curve(1, self.params, curve_gen, self.device, self.dtype)[0])
                 else:
                     targets.append(self.target_spec)
                 gen = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
@@ -288,10 +313,12 @@ class BatchedShapeControl:
             self.steps[ids] += 1
             success = self._update_info(ids, new, target, node[ids], move_info.substeps)
             half = torch.tensor(self.params.workspace, device=self.device, dtype=self.dtype) / 2
-            outside = (new.abs() > half).flatten(1).any(1)
-            term = success
+            outside = (new.abs() > half).flatten(1).any(1) & ~success
+            failed = outside if self.on_exit == "fail" else torch.zeros_like(outside)
+            term = success | failed
             trunc = ~term & ((self.steps[ids] >= self.max_steps) | outside)
-            reward[ids] = torch.where(term, torch.full_like(r, self.params.success_bonus), r)
+            r = torch.where(success, torch.full_like(r, self.success_bonus), r - self.step_penalty)
+            reward[ids] = torch.where(failed, torch.full_like(r, -self.exit_penalty), r)
             terminated[ids], truncated[ids] = term, trunc
         return self.observe(), reward, terminated, truncated, self.info()
 

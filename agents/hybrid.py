@@ -1,0 +1,93 @@
+"""What the tuned learners share about the task: the hybrid (node, drag) action, target-relative features and a
+running normalizer. Used by agents/ppo.py and agents/sac.py (policy "hybrid", features "relative").
+
+Hybrid action. The env's node action (eq 2.6) picks the node through a continuous scalar a0, node = round(a0 (N-1)),
+so a small change of a0 jumps to another node and a Gaussian over a0 spreads its mass over neighbours. The hybrid
+policy chooses the node k from a categorical over the N nodes and the drag of THAT node from its own distribution,
+and maps (k, drag) exactly onto the env action: a0 = k / (N-1) (which decodes to k again), a_{1,2} = (d + 1) / 2
+with d in [-1, 1] the drag in units of action_scale (d = +-1 is +-action_scale metres). A stored hybrid action is
+the row (k, d_x, d_y): three numbers, like an env node action, so it fits the one replay buffer.
+
+Relative features. The success metric compares node i with target node i after centring both, so the policy gets
+exactly that: the centred rope minus the centred target, the centred rope, and the rope's centroid (how close the
+workspace edge is), each in rope lengths: 4N + 2 numbers. They are the same for every target shape, which is what a
+policy trained on random curves needs to generalize.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+import torch.nn as nn
+
+
+# ====================================================================== hybrid action <-> env action (eq 2.6)
+def to_env_action(node: torch.Tensor, drag: torch.Tensor, n_nodes: int) -> torch.Tensor:
+    """(B,) node ids and (B, 2) drags in [-1, 1] (clipped) -> (B, 3) env node actions in [0, 1]."""
+    if node.numel() and (int(node.min()) < 0 or int(node.max()) >= n_nodes):
+        raise ValueError(f"node ids must lie in [0, {n_nodes - 1}], got {node.tolist()}")
+    a0 = node.to(drag.dtype) / (n_nodes - 1)
+    return torch.cat([a0.unsqueeze(-1), (drag.clamp(-1.0, 1.0) + 1.0) / 2.0], dim=-1)
+
+
+def from_env_action(action: torch.Tensor, n_nodes: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, 3) env node actions -> (B,) node ids (as the env decodes them) and (B, 2) drags in [-1, 1]."""
+    node = torch.round(action[:, 0].clamp(0.0, 1.0) * (n_nodes - 1)).to(torch.int64)
+    return node, action[:, 1:].clamp(0.0, 1.0) * 2.0 - 1.0
+
+
+def split(stored: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A stored hybrid action row (B, 3) = (k, d_x, d_y) -> node ids (B,) int64 and raw drags (B, 2)."""
+    return stored[:, 0].round().to(torch.int64), stored[:, 1:]
+
+
+def join(node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
+    """Node ids (B,) and raw drags (B, 2) -> the stored row (B, 3)."""
+    return torch.cat([node.to(drag.dtype).unsqueeze(-1), drag], dim=-1)
+
+
+# ====================================================================== features
+FEATURE_OBS = ("points", "distance")
+
+
+def relative_features(obs: Any, length: float) -> torch.Tensor:
+    """Target-relative features (B, F) of a points observation (4N + 2: centred rope - centred target, centred rope,
+    centroid) or of a distance observation (2N: the centred difference only), in rope lengths."""
+    if isinstance(obs, dict):
+        rope, target = obs["node_poses"].float(), obs["target_poses"].float()
+        centroid = rope.mean(1, keepdim=True)
+        rope_c = rope - centroid
+        diff = rope_c - (target - target.mean(1, keepdim=True))
+        return torch.cat([diff.flatten(1), rope_c.flatten(1), centroid.flatten(1)], dim=1) / length
+    diff = obs.float()
+    return (diff - diff.mean(1, keepdim=True)).flatten(1) / length
+
+
+class RunningNorm(nn.Module):
+    """Per-feature running mean and variance (Chan et al.'s parallel update, as SB3's VecNormalize), applied as
+    clip((x - mean) / sqrt(var + eps), -clip, clip). Its statistics are buffers: they live in the state_dict, so a
+    checkpoint keeps them and a resumed run normalizes exactly as before. ``update`` only when collecting data; the
+    updates of the networks and evaluation use the statistics as they are."""
+
+    def __init__(self, dim: int, clip: float = 10.0, eps: float = 1e-8):
+        super().__init__()
+        self.clip, self.eps = clip, eps
+        self.register_buffer("mean", torch.zeros(dim, dtype=torch.float64))
+        self.register_buffer("var", torch.ones(dim, dtype=torch.float64))
+        self.register_buffer("count", torch.tensor(1e-4, dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        x = x.detach().to(torch.float64).reshape(-1, self.mean.numel())
+        n = x.shape[0]
+        if n == 0:
+            return
+        b_mean, b_var = x.mean(0), x.var(0, unbiased=False)
+        delta, total = b_mean - self.mean, self.count + n
+        self.mean += delta * n / total
+        self.var.copy_((self.var * self.count + b_var * n + delta.pow(2) * self.count * n / total) / total)
+        self.count.copy_(total)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        z = (x - self.mean.to(x.dtype)) / torch.sqrt(self.var.to(x.dtype) + self.eps)
+        return z.clamp(-self.clip, self.clip)
