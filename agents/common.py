@@ -25,7 +25,7 @@ import torch.nn as nn
 import yaml
 from gymnasium.utils import seeding
 
-from agents.hybrid import FEATURE_OBS
+from agents.hybrid import FEATURE_OBS, RunningNorm, relative_features
 from diffdlo.envs.shape_control import ACTION_TYPES, EXIT_RULES, OBS_TYPES, BatchedShapeControl
 from diffdlo.params import CableParams, ParamsError, load_params
 from diffdlo.rewards import REWARDS
@@ -263,6 +263,31 @@ class ObsEncoder(nn.Module):
         if self.cnn is not None:
             parts.append(self.cnn(torch.cat([ex[k] for k in self.image_keys], dim=-1)))
         return torch.cat(parts, dim=1)
+
+
+class Features(nn.Module):
+    """A learner's network input: target-relative features (agents/hybrid.py), running-normalized when
+    ``cfg.normalize_obs``, or SB3's encoder (``ObsEncoder``: flattened floats in rope lengths, NatureCNN on images).
+    ``update_norm``: fold this batch into the normalizer's statistics first (only while collecting data)."""
+
+    def __init__(self, obs_example: Any, cfg, length: float):
+        super().__init__()
+        self.relative, self.length = cfg.features == "relative", length
+        if self.relative:
+            self.enc = None
+            self.out_dim = relative_features(obs_example, length).shape[1]
+        else:
+            self.enc = ObsEncoder(obs_example, 1.0 / length, cfg.cnn_channels, cfg.features_dim)
+            self.out_dim = self.enc.out_dim
+        self.norm = RunningNorm(self.out_dim) if cfg.normalize_obs else None
+
+    def forward(self, obs: Any, update_norm: bool = False) -> torch.Tensor:
+        x = relative_features(obs, self.length) if self.relative else self.enc(obs)
+        if self.norm is None:
+            return x
+        if update_norm:
+            self.norm.update(x)
+        return self.norm(x)
 
 
 # ====================================================================== logging

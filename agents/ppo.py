@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from agents import hybrid
 from agents.buffer import ReplayBuffer
-from agents.common import (CHECKPOINT, EpisodeStats, Logger, ObsEncoder, eval_row, evaluate, fmt_postfix,
+from agents.common import (CHECKPOINT, EpisodeStats, Logger, Features, eval_row, evaluate, fmt_postfix,
                            evaluate_heldout, heldout_envs, load_checkpoint, make_env, make_params, mlp, rng_state,
                            run_cli, save_checkpoint, seed_everything, set_rng_state, torch_threads, write_results)
 
@@ -161,15 +161,9 @@ class ActorCritic(nn.Module):
 
     def __init__(self, obs_example: Any, action_dim: int, cfg: PPOConfig, length: float, n_nodes: int):
         super().__init__()
-        self.relative, self.hybrid, self.length, self.n_nodes = cfg.features == "relative", cfg.policy == "hybrid", \
-            length, n_nodes
-        if self.relative:
-            self.enc = None
-            feat_dim = hybrid.relative_features(obs_example, length).shape[1]
-        else:
-            self.enc = ObsEncoder(obs_example, 1.0 / length, cfg.cnn_channels, cfg.features_dim)
-            feat_dim = self.enc.out_dim
-        self.norm = hybrid.RunningNorm(feat_dim) if cfg.normalize_obs else None
+        self.hybrid, self.n_nodes = cfg.policy == "hybrid", n_nodes
+        self.features = Features(obs_example, cfg, length)
+        feat_dim = self.features.out_dim
         last = cfg.hidden[-1] if cfg.hidden else feat_dim
         self.pi = ortho(mlp(feat_dim, cfg.hidden, None, nn.Tanh), math.sqrt(2))
         self.vf = ortho(mlp(feat_dim, cfg.hidden, None, nn.Tanh), math.sqrt(2))
@@ -177,15 +171,6 @@ class ActorCritic(nn.Module):
         self.mean = ortho(nn.Linear(last, out), 0.01)
         self.value_head = ortho(nn.Linear(last, 1), 1.0)
         self.log_std = nn.Parameter(torch.full((2 if self.hybrid else action_dim,), float(cfg.log_std_init)))
-
-    def features(self, obs: Any, update_norm: bool = False) -> torch.Tensor:
-        """The network input; ``update_norm``: first fold this batch into the running statistics (collection)."""
-        x = hybrid.relative_features(obs, self.length) if self.relative else self.enc(obs)
-        if self.norm is not None:
-            if update_norm:
-                self.norm.update(x)
-            x = self.norm(x)
-        return x
 
     def value(self, obs: Any) -> torch.Tensor:
         return self.value_head(self.vf(self.features(obs))).squeeze(-1)

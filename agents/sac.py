@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from agents import hybrid
 from agents.buffer import ReplayBuffer
-from agents.common import (CHECKPOINT, EpisodeStats, Logger, ObsEncoder, eval_row, evaluate, fmt_postfix,
+from agents.common import (CHECKPOINT, EpisodeStats, Logger, Features, eval_row, evaluate, fmt_postfix,
                            evaluate_heldout, heldout_envs, load_checkpoint, make_env, make_params, mlp, rng_state,
                            run_cli, save_checkpoint, seed_everything, set_rng_state, torch_threads,
                            warn_if_large_buffer, write_results)
@@ -100,30 +100,6 @@ class SACConfig:
 
 
 # ====================================================================== networks
-class Features(nn.Module):
-    """The network input: target-relative features, running-normalized (agents/hybrid.py), or SB3's encoder
-    (flattened floats in rope lengths / NatureCNN on images)."""
-
-    def __init__(self, obs_example: Any, cfg: SACConfig, length: float):
-        super().__init__()
-        self.relative, self.length = cfg.features == "relative", length
-        if self.relative:
-            self.enc = None
-            self.out_dim = hybrid.relative_features(obs_example, length).shape[1]
-        else:
-            self.enc = ObsEncoder(obs_example, 1.0 / length, cfg.cnn_channels, cfg.features_dim)
-            self.out_dim = self.enc.out_dim
-        self.norm = hybrid.RunningNorm(self.out_dim) if cfg.normalize_obs else None
-
-    def forward(self, obs: Any) -> torch.Tensor:
-        x = hybrid.relative_features(obs, self.length) if self.relative else self.enc(obs)
-        return x if self.norm is None else self.norm(x)
-
-    def raw(self, obs: Any) -> torch.Tensor:
-        """Features before normalization (what RunningNorm.update takes)."""
-        return hybrid.relative_features(obs, self.length) if self.relative else self.enc(obs)
-
-
 def squashed_log_prob(u: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
     """log-density of y = tanh(u), u ~ N(mean, exp(log_std)), summed over the last dimension."""
     y = torch.tanh(u)
@@ -327,8 +303,8 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
         last_success, wall_before, update_s = ck["last_success"], ck["wall_s"], ck["update_s"]
         set_rng_state(ck["rng"])
     logger = Logger(out, resume_step=step if resume else None)
-    # one normalizer for actor and critics: the actor's is updated while collecting, the critics' are copies of it
-    norms = [m.feat.norm for m in (actor, critic, critic_target) if m.feat.norm is not None]
+    # the actor's normalizer is updated while collecting; the critics' follow it (Polyak copies buffers)
+    critic_norms = [m.feat.norm for m in (critic, critic_target) if m.feat.norm is not None]
 
     def policy(o: Any, deterministic: bool) -> torch.Tensor:
         if is_hybrid:
@@ -414,10 +390,10 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
     while step < cfg.total_steps:
         # ---- act
         with torch.no_grad():
-            if norms:
-                x = actor.feat.raw(obs)
-                for norm in norms:
-                    norm.update(x)
+            if actor.feat.norm is not None:
+                actor.feat(obs, update_norm=True)
+                for norm in critic_norms:
+                    norm.load_state_dict(actor.feat.norm.state_dict())
             if step < cfg.learning_starts:
                 if is_hybrid:
                     action = hybrid.join(torch.randint(n_nodes, (cfg.num_envs,), device=device),
