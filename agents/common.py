@@ -190,8 +190,9 @@ class TrainEnv:
 def make_env(cfg, num_envs: int) -> TrainEnv:
     """The training/evaluation env of a config (targets, obs, actions, reward, params, optional fixed start)."""
     params = make_params(cfg)
-    shaping = {k: getattr(cfg, k) for k in ("success_bonus", "step_penalty", "on_exit", "exit_penalty")
-               if hasattr(cfg, k)}                   # the task's episode-end rules (PlaNet keeps the env's defaults)
+    shaping = {k: getattr(cfg, k) for k in ("success_bonus", "step_penalty", "on_exit", "exit_penalty",
+                                            "curve_max_turn_deg") if hasattr(cfg, k)}
+    # ^ the task's episode-end rules and target family (PlaNet keeps the env's defaults)
     core = BatchedShapeControl(num_envs=num_envs, target=cfg.target, obs_type=cfg.obs, action_type=cfg.action,
                                reward=cfg.reward, max_steps=cfg.max_steps, success_tol=cfg.success_tol, params=params,
                                image_size=cfg.image_size, device=cfg.env_device or cfg.device, **shaping)

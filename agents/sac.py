@@ -63,6 +63,7 @@ class SACConfig:
     step_penalty: float = 0.0
     on_exit: str = "truncate"             # "fail": leaving the workspace terminates the episode
     exit_penalty: float = 0.0
+    curve_max_turn_deg: float = 12.0      # target "random_curve": the largest turn per node [deg]
     # run
     total_steps: int = 100_000            # env transitions, all envs together
     num_envs: int = 16

@@ -52,19 +52,22 @@ def random_shape(batch: int, p: CableParams, generator: torch.Generator | None =
 
 
 def random_curve(batch: int, p: CableParams, generator: torch.Generator | None = None,
-                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> torch.Tensor:
+                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
+                 max_turn_deg: float = CURVE_MAX_TURN_DEG) -> torch.Tensor:
     """(B, N, 2) smooth random target curves at the rope's link length, centred at the origin.
 
     The turning angle along the rope is a random smooth function of the arc length s in [0, 1],
     turn(s) = c0 + c1 sin(pi s + phi1) + c2 sin(2 pi s + phi2), with c0 ~ U(-1, 1) M / 2, c1 ~ U(-1, 1) M,
-    c2 ~ U(-1, 1) M / 2, phi ~ U(0, 2 pi), clipped to +-M = CURVE_MAX_TURN_DEG, and the first link points in a
+    c2 ~ U(-1, 1) M / 2, phi ~ U(0, 2 pi), clipped to +-M = ``max_turn_deg``, and the first link points in a
     uniform random direction. The family holds straight lines, arcs, S-curves, hooks and waves: the named targets,
     planners/targets/arc.npy and s_curve.yaml are members of it (as limits), never drawn exactly. Drawn on the CPU
     in float64 from ``generator``, so a seed gives the same curves on every device.
     """
     if not isinstance(batch, int) or batch < 1:
         raise ValueError(f"batch must be a positive integer, got {batch!r}")
-    m = math.radians(CURVE_MAX_TURN_DEG)
+    if isinstance(max_turn_deg, bool) or not isinstance(max_turn_deg, (int, float)) or not 0 <= max_turn_deg <= 90:
+        raise ValueError(f"max_turn_deg must be a number of degrees in [0, 90], got {max_turn_deg!r}")
+    m = math.radians(max_turn_deg)
     u = torch.rand(batch, 6, generator=generator, dtype=torch.float64)
     c0, c1, c2 = (u[:, 0:1] * 2 - 1) * m / 2, (u[:, 1:2] * 2 - 1) * m, (u[:, 2:3] * 2 - 1) * m / 2
     phi1, phi2 = u[:, 3:4] * 2 * math.pi, u[:, 4:5] * 2 * math.pi

@@ -273,3 +273,15 @@ def test_held_out_target_files(params):
     k = torch.arange(params.n_nodes - 1, dtype=torch.float64)
     torch.testing.assert_close(direction, 30.0 * torch.sin(4 * math.pi * k / (params.n_nodes - 2)),
                                rtol=0, atol=0.01)                 # two sine periods, 30 deg (YAML: 1 um)
+
+
+def test_random_curve_family_width_is_an_env_option(params):
+    env = BatchedShapeControl(8, target="random_curve", curve_max_turn_deg=20.0, params=params)
+    env.reset(seed=0)
+    t = turns_deg(env.target.double())
+    assert t.abs().max() <= 20.0 + 1e-3 and t.abs().max() > CURVE_MAX_TURN_DEG   # wider than the default 12 deg
+    narrow = BatchedShapeControl(8, target="random_curve", params=params)
+    narrow.reset(seed=0)
+    assert turns_deg(narrow.target.double()).abs().max() <= CURVE_MAX_TURN_DEG + 1e-3
+    with pytest.raises(ValueError, match=r"curve_max_turn_deg: .*\[0, 90\], got 120"):
+        BatchedShapeControl(1, target="random_curve", curve_max_turn_deg=120, params=params)

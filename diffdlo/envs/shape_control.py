@@ -20,7 +20,7 @@ from gymnasium.utils import seeding
 from .. import image as rimage
 from ..params import CableParams, load_params
 from ..rewards import REWARDS, orientation_error, reward as compute_reward, shape_error
-from ..shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve
+from ..shapes import CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve
 from ..simulator import Simulator
 
 OBS_TYPES = ("points", "distance", "image", "image_single")
@@ -97,6 +97,7 @@ class BatchedShapeControl:
         with reward -exit_penalty, so leaving pays nothing more, ever; success is still only is_success).
       exit_penalty: the reward of a move that leaves the workspace under on_exit="fail" is -exit_penalty
         (default 0).
+      curve_max_turn_deg: the largest turning angle per node of target="random_curve" (default 12 deg).
     Episode end (Algorithm 2 with the error metric): terminated, with reward success_bonus, when
     shape_error < success_tol; otherwise truncated at max_steps or when any node leaves the params.workspace
     rectangle centred at the origin (terminated instead, under on_exit="fail"). ``info["is_success"]`` tells a
@@ -108,7 +109,8 @@ class BatchedShapeControl:
                  params: CableParams | str | Path | None = None, image_size: int = 64,
                  view_size: float = DEFAULT_VIEW_SIZE, device: torch.device | str = "cpu",
                  dtype: torch.dtype = torch.float32, backend: str = "auto", success_bonus: float | None = None,
-                 step_penalty: float = 0.0, on_exit: str = "truncate", exit_penalty: float = 0.0):
+                 step_penalty: float = 0.0, on_exit: str = "truncate", exit_penalty: float = 0.0,
+                 curve_max_turn_deg: float = CURVE_MAX_TURN_DEG):
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if not isinstance(obs_type, str) or obs_type not in OBS_TYPES:
@@ -136,6 +138,11 @@ class BatchedShapeControl:
                 raise ValueError(f"{name} must be a finite number, got {v!r}")
         if not isinstance(on_exit, str) or on_exit not in EXIT_RULES:
             raise _choice_error("on_exit", on_exit, EXIT_RULES)
+        try:
+            random_curve(1, p, torch.Generator().manual_seed(0), max_turn_deg=curve_max_turn_deg)   # checks the value
+        except ValueError as exc:
+            raise ValueError(f"curve_max_turn_deg: {exc}") from exc
+        self.curve_max_turn_deg = float(curve_max_turn_deg)
         self.success_bonus, self.step_penalty = float(success_bonus), float(step_penalty)
         self.on_exit, self.exit_penalty = on_exit, float(exit_penalty)
         self.num_envs = int(num_envs)
@@ -239,7 +246,8 @@ class BatchedShapeControl:
                     targets.append(self._named[TARGET_NAMES[int(rng.integers(len(TARGET_NAMES)))]])
                 elif isinstance(self.target_spec, str):                      # "random_curve"
                     curve_gen = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
-                    targets.append(random_curve(1, self.params, curve_gen, self.device, self.dtype)[0])
+                    targets.append(random_curve(1, self.params, curve_gen, self.device, self.dtype,
+                                                self.curve_max_turn_deg)[0])
                 else:
                     targets.append(self.target_spec)
                 gen = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
