@@ -205,3 +205,19 @@ def test_cuda_requested_without_cuda_is_a_clear_error(tmp_path, capsys):
     with pytest.raises(SystemExit):
         ppo.main(["--out", str(tmp_path), "--set", "device=cuda", "--set", "env_device=cpu"])
     assert "device='cuda': CUDA is not available" in capsys.readouterr().err
+
+
+def test_bad_heldout_target_is_named_before_training(tmp_path, capsys):
+    assert ppo.main(argv("ppo", tmp_path, 64, "--set", "eval_targets=[planners/targets/no_such.npy]")) == 2
+    assert "no_such.npy" in capsys.readouterr().err
+    assert not (tmp_path / CHECKPOINT).exists()                   # it stopped before the first rollout
+
+
+def test_heldout_targets_are_evaluated_after_training(tmp_path):
+    import diffdlo
+    p = dataclasses.replace(diffdlo.load_params(), **PO)
+    np.save(tmp_path / "bent.npy", diffdlo.random_curve(1, p, torch.Generator().manual_seed(3))[0].numpy())
+    assert ppo.main(argv("ppo", tmp_path / "run", 128, "--set", f"eval_targets=[{tmp_path / 'bent.npy'}, vertical]")) == 0
+    res = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert set(res["heldout"]) == {"bent", "vertical"}
+    assert len(res["heldout"]["bent"]["episodes"]) == 8 and res["heldout"]["vertical"]["target"] == "vertical"
