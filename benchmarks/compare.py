@@ -421,6 +421,9 @@ def row_cost(method: str, runs: list[dict[str, Any]], st: dict[str, Any]) -> dic
             "moves": moves, "success": st["s1"][0]}
 
 
+PAYBACK_SLACK = 0.05   # a learner's payback is reported only if its success is at most this far below CEM's
+
+
 def payback(learner: dict[str, Any], planner: dict[str, Any], key: str) -> float:
     """Episodes after which a learner (training + its episodes) has cost less than the planner (its episodes), in
     simulator moves (key "moves") or wall seconds ("s"); inf if never, nan if unknown."""
@@ -435,7 +438,8 @@ def cost_section(costs: dict[str, list[dict[str, Any]]], grid: dict[str, Any]) -
              "Simulator moves are one currency for both: a learner's training transitions and the moves of its "
              "episodes, a planner's simulated candidate moves (sim evals) plus the moves it executes. **Pays back "
              "after**: the number of episodes after which the learner, training included, has cost fewer simulator "
-             "moves (or seconds) than CEM on the same task (∞: never, its episodes cost more than CEM's). A "
+             "moves (or seconds) than CEM on the same task (∞: never, its episodes cost more than CEM's); only "
+             f"for a learner whose success is within {PAYBACK_SLACK:.0%} of CEM's. A "
              "learner's seconds per episode are measured with its evaluation episodes run 20 at once (batched); a "
              "planner's one episode at a time. Success counts at 1 cm; moves are over all episodes.", ""]
     head = ["task", "method", "variant", "success @1 cm", "moves / episode", "sim moves to train",
@@ -446,7 +450,9 @@ def cost_section(costs: dict[str, list[dict[str, Any]]], grid: dict[str, Any]) -
         for r in rows:
             variant = r["variant"] + ("" if r["trained_on"] == target else f", trained on {r['trained_on']}")
             pb = "—"
-            if cem is not None and r["train_moves"] > 0:
+            if cem is not None and r["train_moves"] > 0 and r["success"] < cem["success"] - PAYBACK_SLACK:
+                pb = "— (less success than CEM)"
+            elif cem is not None and r["train_moves"] > 0:
                 pb = "; ".join("∞" if math.isinf(x) else ("—" if math.isnan(x) else f"{x:.0f}")
                                for x in (payback(r, cem, "moves"), payback(r, cem, "s")))
             es = "—" if math.isnan(r["episode_s"]) else f"{r['episode_s']:.3g}"

@@ -222,3 +222,16 @@ def test_report_shows_where_a_cell_ran_and_how_it_was_resumed(quick, tmp_path):
     assert "--learner-device cuda" in md
     assert "` then `python -m agents.sac --out X --resume --device cpu` (" in md
     assert "+ Some GPU; resumed on a CPU)" in md
+
+
+def test_payback_only_for_learners_about_as_successful_as_cem():
+    def row(method, success, train, per):
+        return {"method": method, "variant": "v", "trained_on": "random", "success": success, "moves": per,
+                "train_moves": train, "train_s": train / 1000, "episode_moves": per, "episode_s": per / 100}
+    cem = row("cem", 1.0, 0.0, 1010.0)
+    lines = compare.cost_section({"random": [cem, row("ppo", 0.97, 1000.0, 10.0), row("sac", 0.5, 1000.0, 10.0)]},
+                                 {"name": "full"})
+    ppo_line, = [x for x in lines if "| ppo |" in x]
+    sac_line, = [x for x in lines if "| sac |" in x]
+    assert ppo_line.endswith("| 1; 0 |")                     # 1000 / (1010 - 10) = 1 episode; 1 s / 10 s per ep
+    assert sac_line.endswith("| — (less success than CEM) |")
