@@ -22,6 +22,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 import yaml
 from gymnasium.utils import seeding
 
@@ -85,7 +86,8 @@ def check_config(cfg) -> None:
             raise ValueError(f"{key} must be a torch device such as 'cpu' or 'cuda', got {v!r}") from exc
         if dev.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"{key}={v!r}: CUDA is not available on this machine")
-    choices = {"policy": ("hybrid", "gaussian"), "features": ("relative", "raw"), "on_exit": EXIT_RULES}
+    choices = {"policy": ("hybrid", "gaussian"), "features": ("relative", "raw"), "on_exit": EXIT_RULES,
+               "encoder": ENCODERS}
     for key, allowed in choices.items():
         if hasattr(cfg, key) and getattr(cfg, key) not in allowed:
             raise ValueError(f"unknown {key} {getattr(cfg, key)!r}: use one of {list(allowed)}")
@@ -97,6 +99,13 @@ def check_config(cfg) -> None:
                          "(use --set features=raw for images)")
     if getattr(cfg, "normalize_obs", False) and getattr(cfg, "features", None) != "relative":
         raise ValueError("normalize_obs needs features 'relative' (images and raw observations are not normalized)")
+    for key in ("keypoints", "augment_shift"):
+        v = getattr(cfg, key, 0 if key == "augment_shift" else 1)
+        if not isinstance(v, int) or isinstance(v, bool) or v < (0 if key == "augment_shift" else 1):
+            raise ValueError(f"{key} must be a {'non-negative' if key == 'augment_shift' else 'positive'} integer, "
+                             f"got {v!r}")
+    if not isinstance(getattr(cfg, "mark_end", False), bool):
+        raise ValueError(f"mark_end must be true or false, got {cfg.mark_end!r}")
     po = cfg.param_overrides
     if po is not None:
         fields = {f.name for f in dataclasses.fields(CableParams)}
@@ -191,7 +200,7 @@ def make_env(cfg, num_envs: int) -> TrainEnv:
     """The training/evaluation env of a config (targets, obs, actions, reward, params, optional fixed start)."""
     params = make_params(cfg)
     shaping = {k: getattr(cfg, k) for k in ("success_bonus", "step_penalty", "on_exit", "exit_penalty",
-                                            "curve_max_turn_deg") if hasattr(cfg, k)}
+                                            "curve_max_turn_deg", "mark_end") if hasattr(cfg, k)}
     # ^ the task's episode-end rules and target family (PlaNet keeps the env's defaults)
     core = BatchedShapeControl(num_envs=num_envs, target=cfg.target, obs_type=cfg.obs, action_type=cfg.action,
                                reward=cfg.reward, max_steps=cfg.max_steps, success_tol=cfg.success_tol, params=params,
@@ -236,15 +245,77 @@ class CNN(nn.Module):
         return self.head(self.conv(img.permute(0, 3, 1, 2).float() / 255.0))
 
 
+class KeypointCNN(nn.Module):
+    """Spatial-softmax encoder (Levine et al. 2016, "End-to-end training of deep visuomotor policies") for (B, H, W, C)
+    uint8 images: a stride-4 8x8 conv (SB3 NatureCNN's first layer, the cheap one on a CPU), a 3x3 conv to
+    ``keypoints`` feature maps, and per map the softmax-weighted mean pixel position in [-1, 1]^2 (temperature
+    learned). Out: 2 * keypoints coordinates. Positions, not a flattened map, are what this task needs (a move must
+    remove ~1 cm of error with 15.6 mm pixels): the expectation over a soft map resolves a fraction of a pixel."""
+
+    def __init__(self, in_channels: int, size: int, channels: Sequence[int] = (32,), keypoints: int = 32):
+        super().__init__()
+        layers: list[nn.Module] = []
+        c = in_channels
+        for i, out in enumerate(channels):
+            layers += [nn.Conv2d(c, out, 8, 4, 2) if i == 0 else nn.Conv2d(c, out, 3, 1, 1), nn.ReLU()]
+            c = out
+        self.conv = nn.Sequential(*layers, nn.Conv2d(c, keypoints, 3, 1, 1))
+        with torch.no_grad():
+            h, w = self.conv(torch.zeros(1, in_channels, size, size)).shape[-2:]
+        self.register_buffer("xs", torch.linspace(-1.0, 1.0, w), persistent=False)
+        self.register_buffer("ys", torch.linspace(1.0, -1.0, h), persistent=False)   # row 0 is the top
+        self.log_temperature = nn.Parameter(torch.zeros(()))
+        self.out_dim = 2 * keypoints
+
+    def forward(self, img: torch.Tensor) -> torch.Tensor:
+        maps = self.conv(img.permute(0, 3, 1, 2).float() / 255.0)
+        b, k, h, w = maps.shape
+        p = torch.softmax(maps.flatten(2) / self.log_temperature.exp(), dim=-1).view(b, k, h, w)
+        return torch.cat([(p.sum(2) * self.xs).sum(-1), (p.sum(3) * self.ys).sum(-1)], dim=1)
+
+
+def random_shift(images: torch.Tensor, pad: int) -> torch.Tensor:
+    """DrQ's augmentation (Kostrikov et al. 2021): (B, H, W, C) images padded by ``pad`` pixels (edge replicated)
+    and cropped back at a random integer offset in [0, 2 pad]^2 per image: a random shift of up to ``pad`` pixels.
+    Draws from torch's global generator (seeded, saved in checkpoints)."""
+    if pad <= 0:
+        return images
+    b, h, w, _ = images.shape
+    padded = F.pad(images.permute(0, 3, 1, 2).float(), (pad, pad, pad, pad), mode="replicate")
+    dy, dx = torch.randint(0, 2 * pad + 1, (2, b, 1), device=images.device)
+    rows = (dy + torch.arange(h, device=images.device))[:, :, None]            # (B, H, 1)
+    cols = (dx + torch.arange(w, device=images.device))[:, None, :]            # (B, 1, W)
+    out = padded.permute(0, 2, 3, 1)[torch.arange(b, device=images.device)[:, None, None], rows, cols]
+    return out.to(images.dtype)
+
+
+def shift_images(obs: Any, pad: int) -> Any:
+    """An observation with its uint8 pictures shifted by ``random_shift``: rope and target pictures by the SAME
+    offset (stacked along channels first), so they stay one scene; float parts and non-image observations as
+    they are. A shift keeps every node-action label right: the node and the drag vector do not move with the
+    camera (a pixel action, eq 2.5, would)."""
+    if pad <= 0 or not isinstance(obs, dict):
+        return obs
+    keys = sorted(k for k, v in obs.items() if not v.is_floating_point())
+    if not keys:
+        return obs
+    shifted = random_shift(torch.cat([obs[k] for k in keys], dim=-1), pad)
+    return {**obs, **dict(zip(keys, shifted.split([obs[k].shape[-1] for k in keys], dim=-1)))}
+
+
+ENCODERS = ("nature", "keypoints")
+
+
 class ObsEncoder(nn.Module):
     """Any env observation -> a flat feature vector.
 
     Float parts (points, distance) are flattened, scaled by ``scale`` (1 / rope length: coordinates become O(1))
-    and concatenated. uint8 image parts (image, target_image) are stacked along channels into ONE small CNN.
+    and concatenated. uint8 image parts (image, target_image) are stacked along channels into ONE small CNN:
+    ``encoder`` "nature" (SB3's NatureCNN) or "keypoints" (KeypointCNN).
     """
 
     def __init__(self, obs_example: Any, scale: float = 1.0, cnn_channels: Sequence[int] = (32, 64, 64),
-                 features_dim: int = 256):
+                 features_dim: int = 256, encoder: str = "nature", keypoints: int = 32):
         super().__init__()
         ex = obs_example if isinstance(obs_example, dict) else {"obs": obs_example}
         self.is_dict = isinstance(obs_example, dict)
@@ -255,7 +326,9 @@ class ObsEncoder(nn.Module):
         self.cnn = None
         if self.image_keys:
             img = ex[self.image_keys[0]]
-            self.cnn = CNN(3 * len(self.image_keys), img.shape[1], cnn_channels, features_dim)
+            c = 3 * len(self.image_keys)
+            self.cnn = (KeypointCNN(c, img.shape[1], cnn_channels, keypoints) if encoder == "keypoints"
+                        else CNN(c, img.shape[1], cnn_channels, features_dim))
             self.out_dim += self.cnn.out_dim
 
     def forward(self, obs: Any) -> torch.Tensor:
@@ -278,7 +351,8 @@ class Features(nn.Module):
             self.enc = None
             self.out_dim = relative_features(obs_example, length).shape[1]
         else:
-            self.enc = ObsEncoder(obs_example, 1.0 / length, cfg.cnn_channels, cfg.features_dim)
+            self.enc = ObsEncoder(obs_example, 1.0 / length, cfg.cnn_channels, cfg.features_dim,
+                                  getattr(cfg, "encoder", "nature"), getattr(cfg, "keypoints", 32))
             self.out_dim = self.enc.out_dim
         self.norm = RunningNorm(self.out_dim) if cfg.normalize_obs else None
 

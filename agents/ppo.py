@@ -42,7 +42,8 @@ from agents import hybrid
 from agents.buffer import ReplayBuffer
 from agents.common import (CHECKPOINT, EpisodeStats, Logger, Features, eval_row, evaluate, fmt_postfix,
                            evaluate_heldout, heldout_envs, load_checkpoint, make_env, make_params, mlp, rng_state,
-                           run_cli, save_checkpoint, seed_everything, set_rng_state, torch_threads, write_results)
+                           run_cli, save_checkpoint, seed_everything, set_rng_state, shift_images, torch_threads,
+                           write_results)
 
 
 # ====================================================================== config (defaults: params/ppo.yaml)
@@ -64,6 +65,7 @@ class PPOConfig:
     on_exit: str = "truncate"             # "fail": leaving the workspace terminates the episode
     exit_penalty: float = 0.0
     curve_max_turn_deg: float = 12.0      # target "random_curve": the largest turn per node [deg]
+    mark_end: bool = False                # images: a dot on node 0 of rope and target (env option)
     # run
     total_steps: int = 1_000_000
     num_envs: int = 16
@@ -97,6 +99,9 @@ class PPOConfig:
     hidden: list = dataclasses.field(default_factory=lambda: [64, 64])
     cnn_channels: list = dataclasses.field(default_factory=lambda: [32, 64, 64])
     features_dim: int = 256
+    encoder: str = "nature"               # images: "nature" (SB3 NatureCNN) | "keypoints" (spatial softmax)
+    keypoints: int = 32                   # encoder "keypoints": feature maps -> 2 x keypoints coordinates
+    augment_shift: int = 0                # images: DrQ random shift of up to this many pixels (0: off)
 
 
 # ====================================================================== networks
@@ -245,6 +250,7 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
     def policy(o: Any, deterministic: bool) -> torch.Tensor:
         return agent.act(o, deterministic)
 
+
     t0 = time.perf_counter()
     res = None
     per_rollout = cfg.n_steps * cfg.num_envs
@@ -257,12 +263,13 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
         # ---- collect one rollout into rows [0, n_steps)
         rb.reset()
         for _ in range(cfg.n_steps):
+            seen = shift_images(obs, cfg.augment_shift)   # DrQ shift: stored as seen, so the ratio is of one obs
             with torch.no_grad():
-                d, value = agent.dist(obs, update_norm=True)
+                d, value = agent.dist(seen, update_norm=True)
                 u = d.sample()
                 log_prob = d.log_prob(u)
             next_obs, reward, term, trunc, info, final_obs = env.step(agent.env_action(u))
-            rb.add(obs, u, reward, term, trunc, final_obs=final_obs, log_prob=log_prob, value=value)
+            rb.add(seen, u, reward, term, trunc, final_obs=final_obs, log_prob=log_prob, value=value)
             done = (term | trunc).cpu()
             if bool(done.any()):
                 stats.add(info, done)

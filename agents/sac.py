@@ -41,7 +41,7 @@ from agents import hybrid
 from agents.buffer import ReplayBuffer
 from agents.common import (CHECKPOINT, EpisodeStats, Logger, Features, eval_row, evaluate, fmt_postfix,
                            evaluate_heldout, heldout_envs, load_checkpoint, make_env, make_params, mlp, rng_state,
-                           run_cli, save_checkpoint, seed_everything, set_rng_state, torch_threads,
+                           run_cli, save_checkpoint, seed_everything, set_rng_state, shift_images, torch_threads,
                            warn_if_large_buffer, write_results)
 
 
@@ -64,6 +64,7 @@ class SACConfig:
     on_exit: str = "truncate"             # "fail": leaving the workspace terminates the episode
     exit_penalty: float = 0.0
     curve_max_turn_deg: float = 12.0      # target "random_curve": the largest turn per node [deg]
+    mark_end: bool = False                # images: a dot on node 0 of rope and target (env option)
     # run
     total_steps: int = 100_000            # env transitions, all envs together
     num_envs: int = 16
@@ -96,6 +97,9 @@ class SACConfig:
     head_hidden: int = 256                # hybrid: width of the critic's per-node head
     cnn_channels: list = dataclasses.field(default_factory=lambda: [32, 64, 64])
     features_dim: int = 256
+    encoder: str = "nature"               # images: "nature" (SB3 NatureCNN) | "keypoints" (spatial softmax)
+    keypoints: int = 32                   # encoder "keypoints": feature maps -> 2 x keypoints coordinates
+    augment_shift: int = 0                # images: DrQ random shift of up to this many pixels (0: off)
     log_std_min: float = -5.0
     log_std_max: float = 2.0
 
@@ -324,6 +328,13 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
             "last_ckpt": last_ckpt, "last_success": last_success, "update_s": update_s,
             "wall_s": wall_before + time.perf_counter() - t0, "rng": rng_state()})
 
+    def augmented(b: dict[str, Any]) -> dict[str, Any]:
+        """DrQ: every sampled picture shifted at random, obs and next_obs independently (Kostrikov et al. 2021)."""
+        if not cfg.augment_shift:
+            return b
+        return {**b, "obs": shift_images(b["obs"], cfg.augment_shift),
+                "next_obs": shift_images(b["next_obs"], cfg.augment_shift)}
+
     def gaussian_update(b: dict[str, Any]) -> dict[str, torch.Tensor]:
         alpha = log_alpha.exp().detach()
         with torch.no_grad():
@@ -358,8 +369,7 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
             y = b["reward"] + cfg.gamma * (~b["terminated"]).float() * hybrid_soft_value(log_pk, q_next, log_pd,
                                                                                          a_k, a_d)
         node, drag = hybrid.split(b["action"])
-        with torch.no_grad():
-            features = critic.feat(b["obs"])
+        features = critic.feat(b["obs"])      # an image encoder learns from the critic's loss only (DrQ, SAC-AE)
         z = critic.state(features)
         q = critic.taken(z, node, drag)                                   # (2, B)
         critic_loss = 0.5 * ((q - y) ** 2).mean(1).sum()
@@ -369,7 +379,7 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
 
         log_pk, drags, log_pd = actor(b["obs"])
         with torch.no_grad():   # the actor loss needs dQ/dd only: the state code is a constant here
-            z = critic.state(features)
+            z = critic.state(features.detach())
         q_pi = critic.all_nodes(z, drags).min(0)[0]
         actor_loss = -hybrid_soft_value(log_pk, q_pi, log_pd, a_k, a_d).mean()
         actor_opt.zero_grad()
@@ -418,6 +428,7 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
             for _ in range(cfg.gradient_steps):
                 t_update = time.perf_counter()
                 b = rb.sample(cfg.batch_size)
+                b = augmented(b)
                 logs = hybrid_update(b) if is_hybrid else gaussian_update(b)
                 alpha_opt.zero_grad()
                 logs["alpha_loss"].backward()

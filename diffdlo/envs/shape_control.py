@@ -98,6 +98,8 @@ class BatchedShapeControl:
       exit_penalty: the reward of a move that leaves the workspace under on_exit="fail" is -exit_penalty
         (default 0).
       curve_max_turn_deg: the largest turning angle per node of target="random_curve" (default 12 deg).
+      mark_end: image observations draw a dot on node 0 of the rope (green) and of the target (amber), so a rope
+        and its reversal look different (default False: the thesis's pictures, where they do not).
     Episode end (Algorithm 2 with the error metric): terminated, with reward success_bonus, when
     shape_error < success_tol; otherwise truncated at max_steps or when any node leaves the params.workspace
     rectangle centred at the origin (terminated instead, under on_exit="fail"). ``info["is_success"]`` tells a
@@ -110,7 +112,7 @@ class BatchedShapeControl:
                  view_size: float = DEFAULT_VIEW_SIZE, device: torch.device | str = "cpu",
                  dtype: torch.dtype = torch.float32, backend: str = "auto", success_bonus: float | None = None,
                  step_penalty: float = 0.0, on_exit: str = "truncate", exit_penalty: float = 0.0,
-                 curve_max_turn_deg: float = CURVE_MAX_TURN_DEG):
+                 curve_max_turn_deg: float = CURVE_MAX_TURN_DEG, mark_end: bool = False):
         if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if not isinstance(obs_type, str) or obs_type not in OBS_TYPES:
@@ -143,6 +145,9 @@ class BatchedShapeControl:
         except ValueError as exc:
             raise ValueError(f"curve_max_turn_deg: {exc}") from exc
         self.curve_max_turn_deg = float(curve_max_turn_deg)
+        if not isinstance(mark_end, (bool, np.bool_)):
+            raise ValueError(f"mark_end must be True or False, got {mark_end!r}")
+        self.mark_end = bool(mark_end)
         self.success_bonus, self.step_penalty = float(success_bonus), float(step_penalty)
         self.on_exit, self.exit_penalty = on_exit, float(exit_penalty)
         self.num_envs = int(num_envs)
@@ -169,8 +174,10 @@ class BatchedShapeControl:
             "node": torch.full((b,), -1, dtype=torch.int64, device=self.device),
             "substeps": torch.zeros(b, dtype=torch.int64, device=self.device),
         }
+        is_image = obs_type in ("image", "image_single")
         self._target_cov = (torch.zeros(b, self.image_size, self.image_size, device=self.device)
-                            if obs_type in ("image", "image_single") else None)   # cached: fixed per episode
+                            if is_image else None)   # cached: fixed per episode
+        self._target_end = self._target_cov.clone() if is_image and self.mark_end else None
         self.has_reset = False
 
     # ----------------------------------------------------------------- configuration
@@ -333,6 +340,8 @@ class BatchedShapeControl:
     def _cache_target(self, ids: torch.Tensor) -> None:
         if self._target_cov is not None:
             self._target_cov[ids] = rimage.coverage(self.target[ids].detach(), self.image_size, self.view_size)
+        if self._target_end is not None:
+            self._target_end[ids] = rimage.end_marker(self.target[ids].detach(), self.image_size, self.view_size)
 
     def _update_info(self, ids, pos, target, node, substeps) -> torch.Tensor:
         err = shape_error(pos, target)
@@ -364,11 +373,14 @@ class BatchedShapeControl:
             return {"node_poses": pos.to(torch.float32, copy=True), "target_poses": target.to(torch.float32, copy=True)}
         if self.obs_type == "distance":
             return (pos - target).to(torch.float32)
-        rope = (rimage.coverage(pos, self.image_size, self.view_size), rimage.ROPE_COLOR)
-        tgt = (self._target_cov, rimage.TARGET_COLOR)
+        rope = [(rimage.coverage(pos, self.image_size, self.view_size), rimage.ROPE_COLOR)]
+        tgt = [(self._target_cov, rimage.TARGET_COLOR)]
+        if self.mark_end:
+            rope.append((rimage.end_marker(pos, self.image_size, self.view_size), rimage.ROPE_END_COLOR))
+            tgt.append((self._target_end, rimage.TARGET_END_COLOR))
         if self.obs_type == "image":
-            return {"image": rimage.compose([rope]), "target_image": rimage.compose([tgt])}
-        return {"image": rimage.compose([tgt, rope])}
+            return {"image": rimage.compose(rope), "target_image": rimage.compose(tgt)}
+        return {"image": rimage.compose(tgt + rope)}
 
     def render(self, size: int = RENDER_SIZE) -> torch.Tensor:
         """(B, size, size, 3) uint8 pictures of the ropes (red) over their targets (blue), for people."""
