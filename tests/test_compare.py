@@ -74,6 +74,8 @@ def test_grid_is_data_and_filters_work(tmp_path):
     for c in sel:                                                 # the baselines keep SB3's settings explicitly
         preset = c["argv"][c["argv"].index("--preset") + 1] if "--preset" in c["argv"] else "tuned"
         assert preset == ("tuned" if c["variant"] == "tuned" else "sb3-default")
+    img, = compare.build_cells(full, tmp_path, methods=["ppo"], variants=["tuned_image"], targets=["random"], seeds=[0])
+    assert img["argv"][img["argv"].index("--preset") + 1] == "image"        # pictures: params/ppo-image.yaml
     # each seed seeds the learner, its evaluation starts, and the planners' starts and generators
     c = sel[0]
     assert c["argv"][c["argv"].index("--seed") + 1] == "3" and "eval_seed=13000" in c["argv"]

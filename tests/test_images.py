@@ -71,19 +71,19 @@ def test_shift_images_moves_rope_and_target_pictures_together():
 
 
 def test_keypoint_encoder_finds_a_bright_spot_below_pixel_size():
-    """With the convolutions replaced by the picture's red channel, each keypoint is the spot's centre of mass:
-    x and y in [-1, 1], rows counted from the top."""
+    """With the convolutions replaced by the picture's red ink (1 - red/255), each keypoint is the spot's centre of
+    mass: x and y in [-1, 1], rows counted from the top."""
     torch.manual_seed(0)
     enc = KeypointCNN(3, 64, (4,), keypoints=2)
-    enc.conv = torch.nn.Conv2d(3, 2, 1)                               # a 1x1 conv: map = 40 * red channel
+    enc.conv = torch.nn.Conv2d(3, 2, 1)                               # a 1x1 conv: map = 40 * red ink
     with torch.no_grad():
         enc.conv.weight.zero_()
         enc.conv.bias.zero_()
         enc.conv.weight[:, 0] = 40.0
     h = w = 64
     enc.xs, enc.ys = torch.linspace(-1, 1, w), torch.linspace(1, -1, h)
-    img = torch.zeros(1, h, w, 3, dtype=torch.uint8)
-    img[0, 10, 50:52, 0] = 255                                         # two pixels: centre at column 50.5
+    img = torch.full((1, h, w, 3), 255, dtype=torch.uint8)            # a white table ...
+    img[0, 10, 50:52, 0] = 0                                           # ... with ink on two pixels: centre 50.5
     xy = enc(img)[0].detach()
     assert xy.shape == (4,)
     assert float(xy[0]) == pytest.approx(-1 + 2 * 50.5 / 63, abs=0.02)   # sub-pixel: between columns 50 and 51
@@ -134,3 +134,15 @@ def test_image_preset_loads_and_says_why():
 def test_bad_image_settings_are_named(key, value, message):
     with pytest.raises(ValueError, match=message):
         load_config(ppo.PPOConfig, "ppo", {key: value})
+
+
+def test_keypoints_of_different_ropes_differ_at_initialization():
+    """Untrained keypoints must already move with the rope: on the white table's light (x/255, temperature 1) they
+    all sat at the picture's centre (std ~2e-4 over ropes) and a probe regression collapsed to the mean."""
+    torch.manual_seed(0)
+    env = BatchedShapeControl(32, target="random", obs_type="image", mark_end=True)
+    obs, _ = env.reset(seed=0)
+    enc = KeypointCNN(6, 64, (16,), 32)
+    with torch.no_grad():
+        xy = enc(torch.cat([obs["image"], obs["target_image"]], dim=-1))
+    assert float(xy.std(0).mean()) > 0.02
