@@ -99,11 +99,10 @@ def check_config(cfg) -> None:
                          "(use --set features=raw for images)")
     if getattr(cfg, "normalize_obs", False) and getattr(cfg, "features", None) != "relative":
         raise ValueError("normalize_obs needs features 'relative' (images and raw observations are not normalized)")
-    for key in ("keypoints", "augment_shift"):
-        v = getattr(cfg, key, 0 if key == "augment_shift" else 1)
-        if not isinstance(v, int) or isinstance(v, bool) or v < (0 if key == "augment_shift" else 1):
-            raise ValueError(f"{key} must be a {'non-negative' if key == 'augment_shift' else 'positive'} integer, "
-                             f"got {v!r}")
+    for key, least, what in (("keypoints", 1, "positive"), ("augment_shift", 0, "non-negative")):
+        v = getattr(cfg, key, least)
+        if not isinstance(v, int) or isinstance(v, bool) or v < least:
+            raise ValueError(f"{key} must be a {what} integer, got {v!r}")
     if not isinstance(getattr(cfg, "mark_end", False), bool):
         raise ValueError(f"mark_end must be true or false, got {cfg.mark_end!r}")
     po = cfg.param_overrides

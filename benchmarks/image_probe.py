@@ -8,7 +8,7 @@ error from the env's image observation (rope picture + target picture, params/pp
 end markers), on rope states visited by random moves from random starts, and reports the error of the regression
 on held-out states in centimetres per node coordinate. If an encoder cannot read the per-node error to well under
 the 1 cm success tolerance, no policy on top of it can finish the task; if it can, what is missing is learning.
-Prints a table and writes ``<out>/results.json``.
+Prints a table and writes ``<out>/results.json`` (an existing one only with ``--overwrite``).
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ def collect(samples: int, seed: int, image_size: int, mark_end: bool, target: st
         for k in obs:
             images[k].append(obs[k])
         pos, tgt = env.pos.detach(), env.target.detach()
-        errors.append((pos - pos.mean(1, keepdim=True)) - (tgt - tgt.mean(1, keepdim=True)))
+        errors.append(relative_features(pos - tgt, 1.0).view(envs, n, 2))   # the points learners' diff, in m
         obs, _, term, trunc, _ = env.step(torch.rand(envs, 3, generator=g))
         ended = term | trunc
         if bool(ended.any()):
@@ -95,8 +95,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("runs/image_probe"))
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing <out>/results.json")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
+    if (a.out / "results.json").exists() and not a.overwrite:
+        ap.error(f"{a.out / 'results.json'} exists: pass --overwrite to replace it, or another --out")
     for name in ("samples", "epochs", "batch", "threads"):
         if getattr(a, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
