@@ -34,6 +34,7 @@ from agents.buffer import ReplayBuffer, as_dict, index_obs
 from agents.common import (CHECKPOINT, EpisodeStats, Logger, eval_row, evaluate, fmt_postfix, load_checkpoint,
                            make_env, make_params, rng_state, run_cli, save_checkpoint, seed_everything,
                            set_rng_state, torch_threads, warn_if_large_buffer, write_results)
+from agents.dynamics import AUGMENTS, FRAMES, PROPAGATIONS, EnsembleDynamics, ModelPlanner, k_step_errors
 from agents.rssm import RSSM
 from diffdlo.rewards import shape_error
 from planners.cem import CEM, optimize_together
@@ -65,7 +66,14 @@ class PlaNetConfig:
     eval_seed: int = 10_000
     checkpoint_every: int = 10_000
     log_every: int = 25                   # model updates between train-loss rows
-    # model
+    # model: "ensemble" (agents/dynamics.py, points only) or "rssm" (agents/rssm.py, PlaNet's)
+    model: str = "ensemble"
+    members: int = 5
+    model_hidden: list = dataclasses.field(default_factory=lambda: [200, 200, 200])
+    augment: list = dataclasses.field(default_factory=lambda: ["mirror", "reverse"])
+    frame: str = "grasp"
+    propagation: str = "members"
+    running_weight: float = 0.5
     deter: int = 200
     stoch: int = 30
     hidden: int = 200
@@ -100,6 +108,21 @@ class PlaNetConfig:
 
 
 def check_planet_config(cfg: PlaNetConfig) -> None:
+    if cfg.model not in ("ensemble", "rssm"):
+        raise ValueError(f"unknown model {cfg.model!r}: use 'ensemble' or 'rssm'")
+    if cfg.model == "ensemble":
+        if cfg.obs != "points" or cfg.action != "node":
+            raise ValueError(f"model 'ensemble' predicts node positions from node actions: it needs obs 'points' and "
+                             f"action 'node', got obs {cfg.obs!r} and action {cfg.action!r} (use --preset rssm)")
+        if cfg.frame not in FRAMES:
+            raise ValueError(f"unknown frame {cfg.frame!r}: use one of {list(FRAMES)}")
+        if cfg.propagation not in PROPAGATIONS:
+            raise ValueError(f"unknown propagation {cfg.propagation!r}: use one of {list(PROPAGATIONS)}")
+        bad = sorted(set(cfg.augment) - set(AUGMENTS))
+        if bad:
+            raise ValueError(f"unknown augment {bad}: use some of {list(AUGMENTS)}")
+        if int(cfg.members) < 1 or not cfg.model_hidden or min(cfg.model_hidden) < 1:
+            raise ValueError(f"need members >= 1 and positive model_hidden, got {cfg.members} and {cfg.model_hidden}")
     if cfg.plan_objective not in ("reward", "shape"):
         raise ValueError(f"plan_objective must be 'reward' or 'shape', got {cfg.plan_objective!r}")
     if cfg.plan_objective == "shape" and cfg.obs not in ("points", "distance"):
@@ -109,8 +132,10 @@ def check_planet_config(cfg: PlaNetConfig) -> None:
             raise ValueError(f"{key} must be >= 1")
 
 
-def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int) -> RSSM:
+def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int) -> RSSM | EnsembleDynamics:
     p = make_params(cfg)
+    if cfg.model == "ensemble":
+        return EnsembleDynamics(p, cfg.members, cfg.model_hidden, cfg.augment, cfg.frame).to(cfg.device)
     return RSSM(obs, action_dim, action_type=cfg.action, n_nodes=p.n_nodes, scale=1.0 / p.length,
                 deter=cfg.deter, stoch=cfg.stoch, hidden=cfg.hidden, embed=cfg.embed,
                 cnn_channels=cfg.cnn_channels, image_embed=cfg.image_embed, deconv_channels=cfg.deconv_channels,
@@ -235,6 +260,10 @@ class LatentPlanner:
         return action
 
 
+def make_planner(model: RSSM | EnsembleDynamics, cfg: PlaNetConfig, core, seed: int):
+    return ModelPlanner(model, cfg, core, seed) if cfg.model == "ensemble" else LatentPlanner(model, cfg, core, seed)
+
+
 # ====================================================================== data
 def sample_sequences(rb: ReplayBuffer, batch: int, length: int, generator: torch.Generator | None = None):
     """Chunks of ``length`` rows plus the observation after the last row: obs (B, L+1, ...), actions (B, L, A),
@@ -261,8 +290,9 @@ def _safe_next(rb: ReplayBuffer, t: torch.Tensor, e: torch.Tensor, unknown: torc
 
 # ====================================================================== open-loop prediction evaluation
 @torch.no_grad()
-def open_loop_eval(model: RSSM, cfg: PlaNetConfig, n_episodes: int | None = None, context: int | None = None,
-                   horizons: tuple[int, ...] = (5, 10), seed: int | None = None) -> dict[str, Any]:
+def open_loop_eval(model: RSSM | EnsembleDynamics, cfg: PlaNetConfig, n_episodes: int | None = None,
+                   context: int | None = None, horizons: tuple[int, ...] = (1, 2, 5, 10),
+                   seed: int | None = None) -> dict[str, Any]:
     """Open-loop prediction error on held-out episodes (fresh ropes, uniform random moves, never in the buffer).
 
     Filter the posterior over ``context`` moves (context + 1 observations), then roll the prior mean forward under
@@ -271,6 +301,7 @@ def open_loop_eval(model: RSSM, cfg: PlaNetConfig, n_episodes: int | None = None
     moves" baseline: the last observed rope), for points and distance observations; for images the same keys hold
     the mean squared pixel error (model units, [-0.5, 0.5]) of the decoded image vs the last observed image.
     Ropes whose episode ends before the last move are left out. Also returns the trajectories for pictures.
+    The ensemble needs no filter: it predicts from the rope observed after ``context`` moves.
     """
     n = n_episodes or cfg.openloop_episodes
     context = cfg.openloop_context if context is None else context
@@ -289,12 +320,19 @@ def open_loop_eval(model: RSSM, cfg: PlaNetConfig, n_episodes: int | None = None
         obs_seq.append(obs)
         pos_seq.append(env.core.pos.clone())
         acts.append(a)
+    true = torch.stack(pos_seq[context + 1:], 1).float()                              # (n, K, N, 2)
+    if isinstance(model, EnsembleDynamics):
+        out = k_step_errors(model, pos_seq[context].float(), torch.stack(acts[context:], 1), true, horizons,
+                            alive.to(true.device))
+        out.update({"n": int(alive.sum()), "context": context, "true": true.cpu(), "alive": alive,
+                    "target": env.core.target.float().cpu()})
+        out["pred"] = out["pred"].cpu()
+        return out
     state = None
     for t in range(context + 1):
         state, _ = model.obs_step(state, None if t == 0 else acts[t - 1], model.embed(obs_seq[t]), sample=False)
     traj = model.imagine(state, torch.stack(acts[context:], 1), sample=False)
     feat = torch.stack([RSSM.feature(s) for s in traj], 1)                            # (n, K, F)
-    true = torch.stack(pos_seq[context + 1:], 1).float()                              # (n, K, N, 2)
     target = env.core.target.float()
     out: dict[str, Any] = {"n": int(alive.sum()), "context": context}
     a_ = alive.to(true.device)
@@ -404,8 +442,8 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
         last_train, last_success, wall_before = ck["last_train"], ck["last_success"], ck["wall_s"]
         set_rng_state(ck["rng"])
     logger = Logger(out, resume_step=step if resume else None)
-    actor = LatentPlanner(model, cfg, env.core, cfg.seed)
-    eval_planner = LatentPlanner(model, cfg, eval_env.core, cfg.eval_seed)
+    actor = make_planner(model, cfg, env.core, cfg.seed)
+    eval_planner = make_planner(model, cfg, eval_env.core, cfg.eval_seed)
     if resume:
         actor.load_state_dict(ck["actor"])
         eval_planner.load_state_dict(ck["eval_planner"])
@@ -436,7 +474,8 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
         with torch.no_grad():
             if step < seed_steps:
                 action = torch.rand(cfg.num_envs, action_dim, device=device)
-                actor.state = None                      # the planner re-filters from the next episode start
+                if isinstance(actor, LatentPlanner):
+                    actor.state = None                  # the planner re-filters from the next episode start
             else:
                 action = actor(obs, deterministic=False)
         next_obs, reward, term, trunc, info, final_obs = env.step(action)
@@ -451,8 +490,9 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
         # ---- learn
         if step >= seed_steps and step - last_train >= cfg.train_every and len(rb.chunk_starts(cfg.chunk_length)):
             last_train = step
+            chunks = cfg.batch_size * (cfg.members if cfg.model == "ensemble" else 1)   # a minibatch per member
             for _ in range(cfg.updates_per_train):
-                o, a, r, m = sample_sequences(rb, cfg.batch_size, cfg.chunk_length)
+                o, a, r, m = sample_sequences(rb, chunks, cfg.chunk_length)
                 L = model.loss(o, a, r, m)
                 opt.zero_grad()
                 L["loss"].backward()
@@ -460,14 +500,13 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
                 opt.step()
                 n_updates += 1
                 if n_updates % cfg.log_every == 0:
-                    logger.log("train", step, {"loss": L["loss"].item(), "recon": L["recon"].item(),
-                                               "kl": L["kl"].item(), "kl_loss": L["kl_loss"].item(),
-                                               "reward_loss": L["reward_loss"].item(),
-                                               "reward_mae": L["reward_mae"].item(), "grad_norm": float(gnorm),
+                    logger.log("train", step, {**{k: v.item() for k, v in L.items() if torch.is_tensor(v) and v.numel() == 1},
+                                               "grad_norm": float(gnorm),
                                                "n_updates": n_updates})
                     if stats.buf:
                         logger.log("rollout", step, stats.means())
-                    bar.set_postfix(fmt_postfix(last_success, recon=L["recon"].item(), kl=L["kl"].item()))
+                    shown = ("err_cm",) if cfg.model == "ensemble" else ("recon", "kl")
+                    bar.set_postfix(fmt_postfix(last_success, **{k: L[k].item() for k in shown}))
 
         # ---- evaluate, checkpoint
         if step - last_eval >= cfg.eval_every or step >= cfg.total_steps:
@@ -483,7 +522,11 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
     if res is None:
         res = evaluate_all()
     logger.close()
-    return write_results(out, "planet", cfg, res, step, wall_before + time.perf_counter() - t0)
+    extra = {"model": cfg.model, "n_updates": n_updates}
+    if getattr(actor, "planned", 0):          # the ensemble's planner times itself (training collection, all ropes)
+        extra.update(plan_ms_per_step=1000 * actor.plan_s / actor.planned,
+                     plan_env_steps_per_s=actor.planned / max(actor.plan_s, 1e-9))
+    return write_results(out, "planet", cfg, res, step, wall_before + time.perf_counter() - t0, extra=extra)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents import planet                                    # noqa: E402
 from agents.buffer import ReplayBuffer                       # noqa: E402
-from agents.common import load_config, make_env                  # noqa: E402
+from agents.common import load_config, make_env, preset_path  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--envs", type=int, default=64, help="ropes collected in parallel")
     ap.add_argument("--moves", type=int, default=300, help="random moves per rope (episodes end after max_steps)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--preset", default=None, help="PlaNet preset: tuned (the ensemble, default) or rssm")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="PlaNet config key")
     ap.add_argument("--plan-time", action="store_true",
                     help="only time the latent planner: one planned move of --envs ropes (untrained model)")
@@ -43,13 +44,14 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         ap.error(f"--set expects KEY=VALUE, got {bad[0]!r}")
     overrides = {k.strip(): yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set)}
-    cfg = load_config(planet.PlaNetConfig, "planet", overrides)
+    cfg = load_config(planet.PlaNetConfig, preset_path("planet", args.preset), overrides)
+    planet.check_planet_config(cfg)
     torch.manual_seed(args.seed)
     env = make_env(cfg, args.envs)
     obs = env.reset(seed=args.seed)
     model = planet.build_model(cfg, obs, env.core.action_dim)
     if args.plan_time:
-        planner = planet.LatentPlanner(model, cfg, env.core, args.seed)
+        planner = planet.make_planner(model, cfg, env.core, args.seed)
         for i in range(3):
             t0 = time.perf_counter()
             action = planner(obs, deterministic=False)
@@ -67,10 +69,11 @@ def main(argv: list[str] | None = None) -> int:
         obs = nxt
     print(f"data: {args.moves * args.envs} random transitions in {time.perf_counter() - t0:.1f} s")
     print("open-loop node error [cm] on held-out ropes (model / nothing moves), after k moves:")
+    chunks = cfg.batch_size * (cfg.members if cfg.model == "ensemble" else 1)
     marks = {u for u in (250, 500, 1000, 2000, 4000, 8000, 16000) if u < args.updates} | {args.updates}
     t0 = time.perf_counter()
     for u in range(1, args.updates + 1):
-        o, a, r, m = planet.sample_sequences(rb, cfg.batch_size, cfg.chunk_length)
+        o, a, r, m = planet.sample_sequences(rb, chunks, cfg.chunk_length)
         loss = model.loss(o, a, r, m)
         opt.zero_grad()
         loss["loss"].backward()
@@ -78,12 +81,12 @@ def main(argv: list[str] | None = None) -> int:
         opt.step()
         if u in marks:
             model.eval()
-            ol = planet.open_loop_eval(model, cfg, horizons=(1, 5, 10))
+            ol = planet.open_loop_eval(model, cfg, horizons=(1, 2, 5, 10))
             model.train()
             errs = "  ".join(f"k={k}: {100 * ol[f'pred_err_{k}']:.2f} / {100 * ol[f'base_err_{k}']:.2f}"
-                             for k in (1, 5, 10))
-            print(f"{u:6d} updates ({time.perf_counter() - t0:5.0f} s)  recon {loss['recon'].item():7.1f}  "
-                  f"kl {loss['kl'].item():5.2f}  {errs}", flush=True)
+                             for k in (1, 2, 5, 10))
+            shown = "  ".join(f"{k} {v.item():.3g}" for k, v in loss.items() if torch.is_tensor(v) and v.numel() == 1)
+            print(f"{u:6d} updates ({time.perf_counter() - t0:5.0f} s)  {shown}  {errs}", flush=True)
     return 0
 
 

@@ -40,6 +40,16 @@ def encode_node_actions(node: torch.Tensor, delta: torch.Tensor, p: CableParams)
     return torch.cat([a0.unsqueeze(-1), ((delta + s) / (2 * s)).clamp(0.0, 1.0)], dim=-1)
 
 
+def sequence_cost(states: list[torch.Tensor], target: torch.Tensor, running_weight: float = 0.0) -> torch.Tensor:
+    """The planners' cost of a rolled-out sequence: shape_error after the last of the H states (each (..., N, 2)),
+    plus ``running_weight`` times the mean error of the H - 1 intermediate ones. Shared by the simulator's objective
+    and a learned model's (agents/dynamics.py), so both plan for the same thing."""
+    cost = shape_error(states[-1], target)
+    if len(states) > 1 and running_weight > 0:
+        cost = cost + running_weight * sum(shape_error(s, target) for s in states[:-1]) / (len(states) - 1)
+    return cost
+
+
 class SimObjective:
     """cost(actions (B, H, 3)) -> (B,) shape_error after rolling the sequences out from ``start`` (N, 2).
 
@@ -59,16 +69,13 @@ class SimObjective:
         """node (B, H) int64, delta (B, H, 2) [m] -> cost (B,) (and the states (B, H, N, 2) after each move)."""
         b, h = node.shape
         pos = self.start.expand(b, *self.start.shape).contiguous()
-        cost = torch.zeros(b, dtype=self.sim.dtype, device=self.sim.device)
         states = []
         for t in range(h):
             pos = self.sim.move(pos, node[:, t].to(self.sim.device), delta[:, t].to(self.sim.dtype))
             self.sim_evals += b
             self.calls += 1
             states.append(pos)
-            if t < h - 1 and self.running_weight > 0:
-                cost = cost + self.running_weight * shape_error(pos, self.target) / (h - 1)
-        cost = cost + shape_error(pos, self.target)
+        cost = sequence_cost(states, self.target, self.running_weight)
         return (cost, torch.stack(states, 1)) if return_states else cost
 
     def __call__(self, actions: torch.Tensor) -> torch.Tensor:

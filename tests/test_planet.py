@@ -29,7 +29,7 @@ def one_thread():
 def tiny_cfg(**kw):
     base = dict(param_overrides=PO, num_envs=4, max_steps=6, total_steps=64, **SMALL_MODEL)
     base.update(kw)
-    return load_config(planet.PlaNetConfig, "planet", base)
+    return load_config(planet.PlaNetConfig, "planet-rssm", base)
 
 
 def collect(cfg, rows, seed=0):
@@ -186,7 +186,7 @@ def test_open_loop_eval_reports_model_and_baseline():
 
 
 def argv(out, total, *extra):
-    return ["--out", str(out), "--total-steps", str(total), "--num-envs", "4", "--set", TINY, "--max-steps", "8",
+    return ["--out", str(out), "--preset", "rssm", "--total-steps", str(total), "--num-envs", "4", "--set", TINY, "--max-steps", "8",
             "--eval-every", "10000", "--eval-episodes", "4", "--checkpoint-every", "64", "--no-progress",
             "--set", "deter=16", "--set", "stoch=4", "--set", "hidden=16", "--set", "embed=16",
             "--set", "horizon=2", "--set", "candidates=12", "--set", "elites=3", "--set", "iterations=2",
@@ -243,12 +243,12 @@ def test_resume_equals_uninterrupted(tmp_path):
 
 def test_world_model_benchmark_runs(capsys):
     from benchmarks import planet_model
-    assert planet_model.main(["--updates", "2", "--moves", "12", "--envs", "3", "--set", TINY, "--set", "batch_size=4",
+    assert planet_model.main(["--preset", "rssm", "--updates", "2", "--moves", "12", "--envs", "3", "--set", TINY, "--set", "batch_size=4",
                               "--set", "chunk_length=4", "--set", "openloop_episodes=3", "--set", "deter=8",
                               "--set", "stoch=2", "--set", "hidden=8", "--set", "embed=8"]) == 0
     out = capsys.readouterr().out
     assert "2 updates" in out and "k=10:" in out
-    assert planet_model.main(["--plan-time", "--envs", "2", "--set", TINY, "--set", "candidates=8",
+    assert planet_model.main(["--preset", "rssm", "--plan-time", "--envs", "2", "--set", TINY, "--set", "candidates=8",
                               "--set", "elites=2", "--set", "iterations=1", "--set", "deter=8", "--set", "stoch=2",
                               "--set", "hidden=8", "--set", "embed=8"]) == 0
     assert capsys.readouterr().out.count("planned move") == 3
