@@ -566,12 +566,13 @@ def heldout_envs(cfg) -> dict[str, tuple[Any, TrainEnv]]:
 
 
 def evaluate_heldout(policy: Callable[[Any, bool], torch.Tensor], envs: dict[str, tuple[Any, TrainEnv]],
-                     cfg) -> dict[str, Any]:
+                     cfg, policy_for: Callable[[TrainEnv], Callable] | None = None) -> dict[str, Any]:
     """``evaluate`` on every held-out target (as many episodes, from the same start seeds, as the main evaluation):
-    label -> {target, success_rate, mean_final_error, episodes}."""
+    label -> {target, success_rate, mean_final_error, episodes}. ``policy_for(env)``: a policy bound to that env
+    (PlaNet's planners keep per-rope state), instead of ``policy``."""
     out = {}
     for label, (spec, env) in envs.items():
-        r = evaluate(policy, env, cfg.eval_episodes, seed=cfg.eval_seed)
+        r = evaluate(policy if policy_for is None else policy_for(env), env, cfg.eval_episodes, seed=cfg.eval_seed)
         out[label] = {"target": str(spec), "success_rate": r["success_rate"],
                       "mean_final_error": r["mean_final_error"],
                       "episodes": [{k: e[k] for k in ("success", "steps", "final_error")} for e in r["episodes"]]}

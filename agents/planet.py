@@ -31,8 +31,8 @@ import torch
 from tqdm import tqdm
 
 from agents.buffer import ReplayBuffer, as_dict, index_obs
-from agents.common import (CHECKPOINT, EpisodeStats, Logger, eval_row, evaluate, fmt_postfix, load_checkpoint,
-                           make_env, make_params, rng_state, run_cli, save_checkpoint, seed_everything,
+from agents.common import (CHECKPOINT, EpisodeStats, Logger, eval_row, evaluate, evaluate_heldout, fmt_postfix,
+                           heldout_envs, load_checkpoint, make_env, make_params, rng_state, run_cli, save_checkpoint, seed_everything,
                            set_rng_state, torch_threads, warn_if_large_buffer, write_results)
 from agents.dynamics import AUGMENTS, FRAMES, PROPAGATIONS, EnsembleDynamics, ModelPlanner, k_step_errors
 from agents.rssm import RSSM
@@ -64,6 +64,7 @@ class PlaNetConfig:
     eval_every: int = 10_000
     eval_episodes: int = 20
     eval_seed: int = 10_000
+    eval_targets: list = dataclasses.field(default_factory=list)
     checkpoint_every: int = 10_000
     log_every: int = 25                   # model updates between train-loss rows
     # model: "ensemble" (agents/dynamics.py, points only) or "rssm" (agents/rssm.py, PlaNet's)
@@ -419,6 +420,7 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
     seed_everything(cfg.seed)
     env = make_env(cfg, cfg.num_envs)
     eval_env = make_env(cfg, min(cfg.eval_episodes, 32))
+    heldout = heldout_envs(cfg)
     obs = env.reset(seed=cfg.seed)
     action_dim = env.core.action_dim
     model = build_model(cfg, obs, action_dim)
@@ -526,7 +528,10 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
     if getattr(actor, "planned", 0):          # the ensemble's planner times itself (training collection, all ropes)
         extra.update(plan_ms_per_step=1000 * actor.plan_s / actor.planned,
                      plan_env_steps_per_s=actor.planned / max(actor.plan_s, 1e-9))
-    return write_results(out, "planet", cfg, res, step, wall_before + time.perf_counter() - t0, extra=extra)
+    wall = wall_before + time.perf_counter() - t0
+    model.eval()
+    held = evaluate_heldout(None, heldout, cfg, policy_for=lambda e: make_planner(model, cfg, e.core, cfg.eval_seed))
+    return write_results(out, "planet", cfg, res, step, wall, heldout=held, extra=extra)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -164,6 +164,12 @@ def test_ensemble_planet_resume_equals_uninterrupted(tmp_path):
     assert ra["plan_ms_per_step"] > 0 and (a / CHECKPOINT).exists()
 
 
+def test_heldout_targets_are_evaluated_after_training(tmp_path):
+    assert planet.main(argv(tmp_path, 64, "--set", "eval_targets=[horizontal, vertical]")) == 0
+    held = json.loads((tmp_path / "results.json").read_text())["heldout"]
+    assert set(held) == {"horizontal", "vertical"} and len(held["vertical"]["episodes"]) == 4
+
+
 def test_ensemble_needs_points_and_node_actions(tmp_path):
     with pytest.raises(ValueError, match="needs obs 'points'"):
         planet.check_planet_config(load_config(planet.PlaNetConfig, "planet", {"obs": "image"}))
@@ -184,3 +190,19 @@ def test_tiny_task_is_solved_by_planning_through_the_learned_model(tmp_path):
     assert planet.main(argv(tmp_path, 640, *extra)) == 0
     res = json.loads((tmp_path / "results.json").read_text())
     assert res["success_rate"] >= 0.75, res["success_rate"]
+    from benchmarks import planet_budget
+    budget = tmp_path / "budget"
+    assert planet_budget.main(["--run", str(tmp_path), "--out", str(budget), "--candidates", "64", "8",
+                               "--iterations", "3", "--propagations", "members", "mean", "--episodes", "4"]) == 0
+    rows = json.loads((budget / "results.json").read_text())["rows"]
+    assert [(r["candidates"], r["propagation"]) for r in rows] == [(64, "members"), (64, "mean"), (8, "members"),
+                                                                   (8, "mean")]
+    assert all(0 <= r["success_rate"] <= 1 and r["plan_ms_per_env_step"] > 0 for r in rows)
+    with pytest.raises(SystemExit):                       # never replaces a result without --overwrite
+        planet_budget.main(["--run", str(tmp_path), "--out", str(budget)])
+    held = tmp_path / "held"
+    assert planet_budget.main(["--run", str(tmp_path), "--out", str(held), "--targets", "horizontal", "random",
+                               "--candidates", "16", "--iterations", "1", "--episodes", "2"]) == 0
+    assert [r["target"] for r in json.loads((held / "results.json").read_text())["rows"]] == ["horizontal", "random"]
+    with pytest.raises(SystemExit):
+        planet_budget.main(["--run", str(tmp_path), "--out", str(tmp_path / "x"), "--targets", "no_such_shape"])
