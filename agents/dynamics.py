@@ -21,6 +21,7 @@ in memory, the same compute).
 from __future__ import annotations
 
 import math
+import time
 from typing import Any, Sequence
 
 import torch
@@ -211,7 +212,6 @@ class ModelPlanner:
 
     @torch.no_grad()
     def __call__(self, obs: dict[str, torch.Tensor], deterministic: bool = True) -> torch.Tensor:
-        import time
         t0 = time.perf_counter()
         steps = self.core.steps.cpu().long()
         new = steps == 0

@@ -6,6 +6,15 @@ import torch
 import diffdlo
 
 
+@pytest.fixture
+def one_thread():
+    """One torch thread for the test (planning loops are faster so on a shared 2-core machine), restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="session")
 def params():
     return diffdlo.load_params("cable")

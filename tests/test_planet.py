@@ -18,12 +18,7 @@ TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_su
 SMALL_MODEL = dict(deter=24, stoch=6, hidden=24, embed=24)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def tiny_cfg(**kw):
