@@ -1,21 +1,30 @@
-"""PlaNet (Hafner et al. 2019; thesis Chapter 3): learn a latent world model (RSSM, agents/rssm.py) from replayed
-chunks and act by CEM planning in its latent space. CleanRL-style: config -> model -> planner -> loop.
+"""PlaNet (Hafner et al. 2019; thesis Chapter 3): learn a world model from replayed chunks and act by CEM planning
+through it. CleanRL-style: config -> model -> planner -> loop.
 
-    python -m agents.planet --target random --obs points --action node --total-steps 20000 --num-envs 16 --out runs/planet
+    python -m agents.planet --out runs/planet                     # tuned: the ensemble on points, 10k env steps
+    python -m agents.planet --preset rssm --obs image --action pixel --out runs/planet-rssm-image
+
+Two world models (``model``):
+- "ensemble" (default, params/planet.yaml; agents/dynamics.py): PETS-style MLPs predicting one move's change of the
+  rope from the rope, the grasped node and the drag; planned through by ``agents.dynamics.ModelPlanner`` with the
+  planners' cost (shape error of the predicted rope against the observed target). Points and node actions only.
+- "rssm" (params/planet-rssm.yaml; agents/rssm.py): PlaNet's recurrent state-space model, any observation, planned
+  in latent space by ``LatentPlanner`` below.
 
 Data: the ONE shared replay storage (agents/buffer.py). Its chunk sampler returns L contiguous rows of one rope that
 never cross an episode end (an end only at the last row) nor the write head; the observation after the last row is
 added from ``ReplayBuffer.next_obs`` (the stored final observation where the episode ended there, so the success
 reward is learned), masked out only when that row is the newest one and its next observation is not written yet.
+The ensemble draws ``batch_size`` chunks per member.
 
-Loop: ``seed_steps`` env transitions of uniform random actions, then repeatedly ``updates_per_train`` model updates
-every ``train_every`` env transitions, collecting with the latent CEM planner plus Gaussian exploration noise.
+Loop: ``seed_episodes`` x max_steps env transitions of uniform random actions, then ``updates_per_train`` model
+updates every ``train_every`` env transitions, collecting with the planner plus Gaussian exploration noise.
 
-Planning: the project's generic ``planners.cem.CEM`` (categorical over the grasped node for node actions, Gaussians
-for the drags) minimises ``LatentObjective``: from the current posterior state, roll the prior mean forward under
-each candidate sequence and return minus the sum of predicted rewards (``plan_objective: reward``, PlaNet) or, for
-points/distance observations, the shape error of the decoded rope against the (observed) target
-(``plan_objective: shape``, the planners' cost in planners/objective.py). The prior MEAN is used so that a
+Latent planning (RSSM): the project's generic ``planners.cem.CEM`` (categorical over the grasped node for node
+actions, Gaussians for the drags) minimises ``LatentObjective``: from the current posterior state, roll the prior
+mean forward under each candidate sequence and return minus the sum of predicted rewards (``plan_objective:
+reward``, PlaNet) or, for points/distance observations, the shape error of the decoded rope against the (observed)
+target (``plan_objective: shape``, the planners' cost in planners/objective.py). The prior MEAN is used so that a
 candidate's cost is deterministic, as CEM's elitism assumes.
 """
 from __future__ import annotations
