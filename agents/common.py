@@ -1,7 +1,9 @@
-"""Helpers shared by the model-free learners (agents/sac.py, agents/ppo.py): the training env with autoreset,
-network builders, the logger, checkpoints, evaluation, results and the command line.
+"""Helpers shared by the learners (agents/sac.py, agents/ppo.py, agents/planet.py): configuration, the training env
+with autoreset, network builders and image encoders, the logger, checkpoints, evaluation (also on held-out target
+shapes), results and the command line.
 
-Only what both learners use lives here; each algorithm (config -> networks -> loop) reads top to bottom in its own file.
+Only what the learners share lives here; each algorithm (config -> networks -> loop) reads top to bottom in its own
+file.
 """
 from __future__ import annotations
 
@@ -586,7 +588,8 @@ def eval_row(result: dict[str, Any]) -> dict[str, float]:
 def write_results(out: Path, method: str, cfg, result: dict[str, Any], env_steps: int, wall_s: float,
                   max_pictures: int = 8, heldout: dict[str, Any] | None = None,
                   extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """``results.json`` (DESIGN.md fields; ``heldout``: per held-out target, its success rate and episodes;
+    """``results.json`` (the fields every method writes: method, target, seed, success_rate, episodes, env_steps,
+    wall_s; ``heldout``: per held-out target, its success rate and episodes;
     ``extra``: a learner's own figures, e.g. SAC's ms per update) and ``eval_episodes.png`` (final shapes against
     targets)."""
     out = Path(out)
@@ -714,5 +717,3 @@ def fmt_postfix(success: float | None, **extra: float) -> dict[str, str]:
     return d
 
 
-def timer() -> float:
-    return time.perf_counter()

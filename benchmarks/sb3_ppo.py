@@ -11,7 +11,7 @@ Adam 3e-4 annealed linearly, gamma 0.97, lambda 0.95, clip 0.2, [256, 256] tanh 
 log 0.5, and the same observation: our target-relative features (agents.hybrid.relative_features) running-
 normalized by SB3's VecNormalize (norm_obs, no reward normalization). The env is one BatchedShapeControl of 512
 ropes behind a small SB3 VecEnv adapter (BatchedVecEnv below), so SB3 steps all ropes in one simulator call as ours
-does. Writes results.json (method "sb3_ppo", DESIGN.md fields) after evaluating on --eval-episodes episodes from
+does. Writes results.json (method "sb3_ppo", the fields every method writes) after evaluating on --eval-episodes episodes from
 seeds 10000 + i with the deterministic policy. Needs the [dev] extra (SB3).
 """
 from __future__ import annotations

@@ -2,12 +2,12 @@
 
     python benchmarks/sb3_sac.py --total-steps 20000 --num-envs 16 --seed 0 --out runs/sb3-sac-s0
 
-The comparison point for our SAC (issue 6): same env (points observations, node actions, position-orientation
+The comparison point for our SAC: same env (points observations, node actions, position-orientation
 reward, random targets), same update-to-data ratio (``--gradient-steps`` per vector step, default = num_envs, i.e.
 one update per transition as in SB3's single-env default), SB3's own vectorization (``make_vec_env``: a
 DummyVecEnv of single envs, as an SB3 user would run it), and the same evaluation as ``agents.sac``
 (``agents.common.evaluate`` on ``--eval-episodes`` episodes from seeds 10000 + i, deterministic policy).
-Writes ``results.json`` (DESIGN.md fields, method "sb3_sac") and prints the wall time. Needs the [dev] extra (SB3).
+Writes ``results.json`` (the fields every method writes, method "sb3_sac") and prints the wall time. Needs the [dev] extra (SB3).
 """
 from __future__ import annotations
 

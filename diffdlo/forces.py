@@ -1,4 +1,4 @@
-"""Internal energy and forces of the planar mass-spring cable (thesis eq 2.2-2.4, DESIGN.md physics notes).
+"""Internal energy and forces of the planar mass-spring cable (thesis eq 2.2-2.4; README "The model").
 
 Pure batched functions of ``pos`` (B, N, 2); device and dtype follow the input.
 

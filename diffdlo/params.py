@@ -64,7 +64,7 @@ class CableParams:
     settle_threshold: float
     settle_check_every: int
     settle_max_substeps: int
-    # task (Algorithms 1-2, DESIGN.md)
+    # task (thesis Algorithms 1-2)
     sigma: float
     action_scale: float
     workspace: tuple[float, float]

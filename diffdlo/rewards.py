@@ -1,4 +1,4 @@
-"""Rewards (thesis eq 2.7-2.11) and task metrics (DESIGN.md), batched: rope (B, N, 2), target (N, 2) or (B, N, 2)."""
+"""Rewards (thesis eq 2.7-2.11) and task metrics, batched: rope (B, N, 2), target (N, 2) or (B, N, 2)."""
 from __future__ import annotations
 
 import math
@@ -55,7 +55,7 @@ def reward_position_orientation(pos: torch.Tensor, target: torch.Tensor) -> torc
 def shape_error(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """(B,) mean node distance [m] between rope and target after aligning their centroids.
 
-    Translation-free, orientation-sensitive; node i is compared with target node i (DESIGN.md).
+    Translation-free, orientation-sensitive; node i is compared with target node i.
     """
     target = target.expand_as(pos)
     a = pos - pos.mean(dim=-2, keepdim=True)

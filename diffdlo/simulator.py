@@ -41,7 +41,7 @@ BACKENDS = ("auto", "kernel", "torch")
 
 
 class Simulator:
-    """Batched planar mass-spring cable on ``device`` in ``dtype``. See DESIGN.md for the API.
+    """Batched planar mass-spring cable on ``device`` in ``dtype``. README "Use the simulator" shows the API.
 
     ``backend``: "torch" is the eager reference path (every controller, frame recording, any device);
     "kernel" is the fused C++ CPU kernel (kinematic controller; diffdlo/csrc/cable.cpp) with a hand-written

@@ -92,7 +92,7 @@ def test_kernel_free_evolution_equals_reference(params):
 
 
 def test_float32_kernel_within_1mm_of_the_float64_reference(params):
-    """Issue 4's accuracy bar: after one move and after 1 s of free evolution."""
+    """The kernel's accuracy bar: after one move and after 1 s of free evolution."""
     ref = diffdlo.Simulator(params, dtype=torch.float64, backend="torch")
     fast = diffdlo.Simulator(params, dtype=torch.float32, backend="kernel")
     pos = crumpled(MIXED, params, sigma=0.3, seed=7)
@@ -131,7 +131,7 @@ def test_backend_selection_and_fallback(params, monkeypatch):
 
 
 def test_gradient_of_a_move_sequence_equals_plain_autograd(params):
-    """Issue 4: the memory-bounded gradient of several moves equals autograd through the eager loop."""
+    """The memory-bounded gradient of several moves equals autograd through the eager loop."""
     ref, fast = pair(params)
     pos = crumpled(MIXED, params, sigma=0.3, seed=9)
     g = torch.Generator().manual_seed(10)
