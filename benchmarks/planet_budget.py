@@ -10,7 +10,8 @@ planning time per env step (all evaluation ropes planned together, as in trainin
     python -m benchmarks.planet_budget --run runs/planet_ens_s0 --targets planners/targets/arc.npy \
         planners/targets/s_curve.yaml --out runs/planet_heldout_s0
 
-Writes ``results.json`` under --out (refuses to replace one without --overwrite). Elites stay 10 % of candidates.
+Budgets not given are the run's own. Writes ``results.json`` under --out (refuses to replace one without
+--overwrite). Elites are 10 % of the candidates.
 """
 from __future__ import annotations
 
@@ -36,16 +37,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--targets", nargs="+", default=None,
                     help="targets to evaluate on (names, families, .npy/.yaml paths; default: the run's target)")
-    ap.add_argument("--horizons", type=int, nargs="+", default=[2])
-    ap.add_argument("--candidates", type=int, nargs="+", default=[300])
-    ap.add_argument("--iterations", type=int, nargs="+", default=[5])
-    ap.add_argument("--propagations", nargs="+", default=["members"], choices=["members", "mean"])
+    ap.add_argument("--horizons", type=int, nargs="+", default=None, help="default: the run's horizon")
+    ap.add_argument("--candidates", type=int, nargs="+", default=None, help="default: the run's candidates")
+    ap.add_argument("--iterations", type=int, nargs="+", default=None, help="default: the run's iterations")
+    ap.add_argument("--propagations", nargs="+", default=None, choices=["members", "mean"],
+                    help="default: the run's propagation")
     ap.add_argument("--episodes", type=int, default=None, help="evaluation episodes (default: the run's)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--overwrite", action="store_true", help="replace an existing results.json under --out")
     args = ap.parse_args(argv)
     for name in ("horizons", "candidates", "iterations"):
-        bad = [v for v in getattr(args, name) if v < 1]
+        bad = [v for v in getattr(args, name) or [] if v < 1]
         if bad:
             ap.error(f"--{name} must be >= 1, got {bad}")
     if args.episodes is not None and args.episodes < 1:
@@ -60,6 +62,10 @@ def main(argv: list[str] | None = None) -> int:
     cfg = planet.PlaNetConfig(**ck["config"])
     if cfg.model != "ensemble":
         ap.error(f"{args.run} holds a PlaNet with model {cfg.model!r}; this benchmark plans through the ensemble")
+    args.horizons = args.horizons or [cfg.horizon]
+    args.candidates = args.candidates or [cfg.candidates]
+    args.iterations = args.iterations or [cfg.iterations]
+    args.propagations = args.propagations or [cfg.propagation]
     torch.set_num_threads(args.threads)
     n = args.episodes or cfg.eval_episodes
     cfg = dataclasses.replace(cfg, device="cpu", env_device="cpu")

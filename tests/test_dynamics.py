@@ -195,6 +195,10 @@ def test_tiny_task_is_solved_by_planning_through_the_learned_model(tmp_path):
     assert all(0 <= r["success_rate"] <= 1 and r["plan_ms_per_env_step"] > 0 for r in rows)
     with pytest.raises(SystemExit):                       # never replaces a result without --overwrite
         planet_budget.main(["--run", str(tmp_path), "--out", str(budget)])
+    own = tmp_path / "own"                                # no budget given: the run's own
+    assert planet_budget.main(["--run", str(tmp_path), "--out", str(own), "--episodes", "2"]) == 0
+    row = json.loads((own / "results.json").read_text())["rows"][0]
+    assert (row["horizon"], row["candidates"], row["iterations"], row["propagation"]) == (2, 64, 3, "members")
     held = tmp_path / "held"
     assert planet_budget.main(["--run", str(tmp_path), "--out", str(held), "--targets", "horizontal", "random",
                                "--candidates", "16", "--iterations", "1", "--episodes", "2"]) == 0
