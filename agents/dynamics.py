@@ -36,20 +36,29 @@ FRAMES = ("grasp", "centroid")
 PROPAGATIONS = ("members", "mean")
 
 
+def check_settings(members: int = 5, hidden: Sequence[int] = (200,), augment: Sequence[str] = (),
+                   frame: str = "grasp", propagation: str = "members") -> None:
+    """The ensemble's settings, checked in one place (the model, its objective and PlaNet's config call it)."""
+    bad = sorted(set(augment) - set(AUGMENTS))
+    if bad:
+        raise ValueError(f"unknown augment {bad}: use some of {list(AUGMENTS)}")
+    if frame not in FRAMES:
+        raise ValueError(f"unknown frame {frame!r}: use one of {list(FRAMES)}")
+    if propagation not in PROPAGATIONS:
+        raise ValueError(f"unknown propagation {propagation!r}: use one of {list(PROPAGATIONS)}")
+    if int(members) < 1 or not hidden or min(hidden) < 1:
+        raise ValueError(f"need members >= 1 and positive hidden sizes, got {members} and {list(hidden)}")
+
+
 class EnsembleDynamics(nn.Module):
-    """E MLPs: next rope (E, B, N, 2) from rope (B, N, 2) or (E, B, N, 2), node (.., B) int64 and drag (.., B, 2) [m]."""
+    """E MLPs: next rope (E, B, N, 2) from rope (B, N, 2) or (E, B, N, 2), node (.., B) int64 and drag (.., B, 2)
+    [m]."""
 
     def __init__(self, p: CableParams, members: int = 5, hidden: Sequence[int] = (200, 200, 200),
                  augment: Sequence[str] = ("mirror", "reverse"), frame: str = "grasp"):
         super().__init__()
-        bad = sorted(set(augment) - set(AUGMENTS))
-        if bad:
-            raise ValueError(f"unknown augment {bad}: use some of {list(AUGMENTS)}")
-        if frame not in FRAMES:
-            raise ValueError(f"unknown frame {frame!r}: use one of {list(FRAMES)}")
+        check_settings(members, hidden, augment, frame)
         self.frame = frame
-        if members < 1 or not hidden or min(hidden) < 1:
-            raise ValueError(f"need members >= 1 and positive hidden sizes, got {members} and {list(hidden)}")
         self.p, self.E, self.N = p, int(members), p.n_nodes
         self.length, self.scale = float(p.length), float(p.action_scale)
         self.augment = tuple(augment)
@@ -70,9 +79,10 @@ class EnsembleDynamics(nn.Module):
         if self.frame == "grasp":
             grasped = (rope * onehot[..., None]).sum(-2, keepdim=True)
             dist = drag.norm(dim=-1, keepdim=True)
-            unit = torch.where(dist > 0, drag / dist.clamp_min(1e-12), torch.tensor([1.0, 0.0], dtype=rope.dtype,
-                                                                                     device=rope.device))
-            c, s = unit[..., :1, None], unit[..., 1:, None]                     # (E, B, 1, 1)
+            unit = drag / dist.clamp_min(1e-12)
+            moving = dist > 0                                                   # a zero drag keeps the x axis
+            c = torch.where(moving, unit[..., :1], 1.0)[..., None]               # (E, B, 1, 1)
+            s = torch.where(moving, unit[..., 1:], 0.0)[..., None]
             rel = rope - grasped
             local = torch.cat([c * rel[..., :1] + s * rel[..., 1:], c * rel[..., 1:] - s * rel[..., :1]], -1)
             x = torch.cat([local.reshape(e, b, -1) / self.length, onehot, dist / self.scale], -1)
@@ -149,8 +159,7 @@ class ModelObjective:
 
     def __init__(self, model: EnsembleDynamics, ropes: torch.Tensor, targets: torch.Tensor,
                  running_weight: float = 0.5, propagation: str = "members"):
-        if propagation not in PROPAGATIONS:
-            raise ValueError(f"unknown propagation {propagation!r}: use one of {list(PROPAGATIONS)}")
+        check_settings(propagation=propagation)
         self.model, self.ropes, self.targets = model, ropes.float(), targets.float()
         self.running_weight, self.propagation = float(running_weight), propagation
         self.calls = 0

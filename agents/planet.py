@@ -41,9 +41,9 @@ from tqdm import tqdm
 
 from agents.buffer import ReplayBuffer, as_dict, index_obs
 from agents.common import (CHECKPOINT, EpisodeStats, Logger, eval_row, evaluate, evaluate_heldout, fmt_postfix,
-                           heldout_envs, load_checkpoint, make_env, make_params, rng_state, run_cli, save_checkpoint, seed_everything,
-                           set_rng_state, torch_threads, warn_if_large_buffer, write_results)
-from agents.dynamics import AUGMENTS, FRAMES, PROPAGATIONS, EnsembleDynamics, ModelPlanner, k_step_errors
+                           heldout_envs, load_checkpoint, make_env, make_params, rng_state, run_cli, save_checkpoint,
+                           seed_everything, set_rng_state, torch_threads, warn_if_large_buffer, write_results)
+from agents.dynamics import EnsembleDynamics, ModelPlanner, check_settings, k_step_errors
 from agents.rssm import RSSM
 from diffdlo.rewards import shape_error
 from planners.cem import CEM, optimize_together
@@ -124,15 +124,7 @@ def check_planet_config(cfg: PlaNetConfig) -> None:
         if cfg.obs != "points" or cfg.action != "node":
             raise ValueError(f"model 'ensemble' predicts node positions from node actions: it needs obs 'points' and "
                              f"action 'node', got obs {cfg.obs!r} and action {cfg.action!r} (use --preset rssm)")
-        if cfg.frame not in FRAMES:
-            raise ValueError(f"unknown frame {cfg.frame!r}: use one of {list(FRAMES)}")
-        if cfg.propagation not in PROPAGATIONS:
-            raise ValueError(f"unknown propagation {cfg.propagation!r}: use one of {list(PROPAGATIONS)}")
-        bad = sorted(set(cfg.augment) - set(AUGMENTS))
-        if bad:
-            raise ValueError(f"unknown augment {bad}: use some of {list(AUGMENTS)}")
-        if int(cfg.members) < 1 or not cfg.model_hidden or min(cfg.model_hidden) < 1:
-            raise ValueError(f"need members >= 1 and positive model_hidden, got {cfg.members} and {cfg.model_hidden}")
+        check_settings(cfg.members, cfg.model_hidden, cfg.augment, cfg.frame, cfg.propagation)
     if cfg.plan_objective not in ("reward", "shape"):
         raise ValueError(f"plan_objective must be 'reward' or 'shape', got {cfg.plan_objective!r}")
     if cfg.plan_objective == "shape" and cfg.obs not in ("points", "distance"):
@@ -478,6 +470,7 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
 
     t0 = time.perf_counter()
     res = None
+    chunks = cfg.batch_size * (cfg.members if cfg.model == "ensemble" else 1)   # the ensemble: a minibatch per member
     bar = tqdm(total=cfg.total_steps, initial=min(step, cfg.total_steps), desc="planet", disable=not progress,
                dynamic_ncols=True, file=sys.stderr)
     while step < cfg.total_steps:
@@ -501,7 +494,6 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
         # ---- learn
         if step >= seed_steps and step - last_train >= cfg.train_every and len(rb.chunk_starts(cfg.chunk_length)):
             last_train = step
-            chunks = cfg.batch_size * (cfg.members if cfg.model == "ensemble" else 1)   # a minibatch per member
             for _ in range(cfg.updates_per_train):
                 o, a, r, m = sample_sequences(rb, chunks, cfg.chunk_length)
                 L = model.loss(o, a, r, m)
@@ -511,9 +503,8 @@ def _train(cfg: PlaNetConfig, out: Path | str, resume: bool, progress: bool) -> 
                 opt.step()
                 n_updates += 1
                 if n_updates % cfg.log_every == 0:
-                    logger.log("train", step, {**{k: v.item() for k, v in L.items() if torch.is_tensor(v) and v.numel() == 1},
-                                               "grad_norm": float(gnorm),
-                                               "n_updates": n_updates})
+                    scalars = {k: v.item() for k, v in L.items() if torch.is_tensor(v) and v.numel() == 1}
+                    logger.log("train", step, {**scalars, "grad_norm": float(gnorm), "n_updates": n_updates})
                     if stats.buf:
                         logger.log("rollout", step, stats.means())
                     shown = ("err_cm",) if cfg.model == "ensemble" else ("recon", "kl")

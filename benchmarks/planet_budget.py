@@ -97,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
                      "wall_s": time.perf_counter() - t0})
         row = rows[-1]
         moves = "-" if row["moves_to_success"] is None else f"{row['moves_to_success']:.1f}"
-        print(f"{target}: H={h} candidates={c} iterations={it} {prop}: success {row['success_rate']:.2f}, moves {moves}, "
+        print(f"{target}: H={h} candidates={c} iterations={it} {prop}: success {row['success_rate']:.2f}, "
+              f"moves {moves}, "
               f"final error {100 * row['mean_final_error']:.2f} cm, plan {row['plan_ms_per_env_step']:.0f} ms per "
               f"env step ({env.num_envs} ropes together)", flush=True)
     out.mkdir(parents=True, exist_ok=True)
