@@ -29,7 +29,8 @@ import torch.nn as nn
 
 from diffdlo.params import CableParams
 from planners.cem import CEM, optimize_together
-from planners.objective import decode_node_actions, sequence_cost
+from diffdlo.task import decode_node_action
+from planners.objective import sequence_cost
 
 AUGMENTS = ("rotate", "mirror", "reverse")
 FRAMES = ("grasp", "centroid")
@@ -114,7 +115,7 @@ class EnsembleDynamics(nn.Module):
         if n % self.E:
             raise ValueError(f"the batch ({n} chunks) must split evenly over the {self.E} members")
         mask = torch.ones(n, L + 1, device=rope.device) if mask is None else mask.float()
-        node, drag = decode_node_actions(actions.float(), self.p)
+        node, drag = decode_node_action(actions.float(), self.p)
         rope, node, drag = self.transform(rope, node, drag)
         b = n // self.E
         rope, node, drag, mask = (x.reshape(self.E, b, *x.shape[1:]) for x in (rope, node, drag, mask))
@@ -168,7 +169,7 @@ class ModelObjective:
     def __call__(self, actions: torch.Tensor) -> torch.Tensor:
         r, c, h = actions.shape[:3]
         m = self.model
-        node, drag = decode_node_actions(actions.to(self.ropes.device, torch.float32), m.p)
+        node, drag = decode_node_action(actions.to(self.ropes.device, torch.float32), m.p)
         node, drag = node.reshape(r * c, h), drag.reshape(r * c, h, 2)
         pos = self.ropes[:, None].expand(r, c, m.N, 2).reshape(r * c, m.N, 2)
         target = self.targets[:, None].expand(r, c, m.N, 2).reshape(r * c, m.N, 2)
@@ -190,11 +191,28 @@ class ModelObjective:
         return cost.view(r, c)
 
 
+class EpisodeTracker:
+    """Which ropes of an env started a new episode, or moved, since the last call: read from the env's step
+    counters (0 after a reset). A planner resets a new rope's warm start and plans only for ropes that moved (in an
+    evaluation wave a finished rope stays where it ended and keeps its last action)."""
+
+    def __init__(self, core):
+        self.core = core
+        self.last_steps = torch.full((core.num_envs,), -1, dtype=torch.int64)
+
+    def update(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(new (B,) bool, moved (B,) bool); a new rope counts as moved."""
+        steps = self.core.get_state().steps.cpu().long()
+        new = steps == 0
+        moved = (steps != self.last_steps) | new
+        self.last_steps = steps.clone()
+        return new, moved
+
+
 class ModelPlanner:
     """The acting policy: every rope's next move by its own warm-started node-categorical CEM (``planners.cem``),
     all ropes' CEMs in lockstep (one model call per iteration). Reads the rope and the target from the points
-    observation. Like ``agents.planet.LatentPlanner`` it reads the env core's step counter to tell a new episode
-    (0 after a reset) and ropes that did not move (finished in an evaluation wave: they keep their action)."""
+    observation; ``EpisodeTracker`` tells it which ropes are new and which moved."""
 
     def __init__(self, model: EnsembleDynamics, cfg, core, seed: int):
         self.model, self.cfg, self.core = model, cfg, core
@@ -203,18 +221,18 @@ class ModelPlanner:
                          discrete={0: model.N}, generator=torch.Generator().manual_seed(seed + i),
                          dtype=torch.float32) for i in range(self.b)]
         self.prev_action = torch.zeros(self.b, 3)
-        self.last_steps = torch.full((self.b,), -1, dtype=torch.int64)
+        self.tracker = EpisodeTracker(core)
         self.plan_s = 0.0
         self.planned = 0                                      # rope-moves planned
 
     def state_dict(self) -> dict[str, Any]:
-        return {"prev_action": self.prev_action.clone(), "last_steps": self.last_steps.clone(),
+        return {"prev_action": self.prev_action.clone(), "last_steps": self.tracker.last_steps.clone(),
                 "cems": [c.state_dict() for c in self.cems], "plan_s": self.plan_s, "planned": self.planned}
 
     def load_state_dict(self, s: dict[str, Any]) -> None:
         if len(s["cems"]) != self.b:
             raise ValueError(f"planner state for {len(s['cems'])} ropes, this planner has {self.b}")
-        self.prev_action, self.last_steps = s["prev_action"].clone(), s["last_steps"].clone()
+        self.prev_action, self.tracker.last_steps = s["prev_action"].clone(), s["last_steps"].clone()
         for c, cs in zip(self.cems, s["cems"]):
             c.load_state_dict(cs)
         self.plan_s, self.planned = float(s["plan_s"]), int(s["planned"])
@@ -222,9 +240,7 @@ class ModelPlanner:
     @torch.no_grad()
     def __call__(self, obs: dict[str, torch.Tensor], deterministic: bool = True) -> torch.Tensor:
         t0 = time.perf_counter()
-        steps = self.core.steps.cpu().long()
-        new = steps == 0
-        moved = (steps != self.last_steps) | new
+        new, moved = self.tracker.update()
         for i in new.nonzero().flatten().tolist():
             self.cems[i].reset()
         action = self.prev_action.clone()
@@ -242,7 +258,6 @@ class ModelPlanner:
             noise = self.cfg.explore_noise * torch.randn(self.b, 3)
             action = torch.where(moved[:, None], (action + noise).clamp(0.0, 1.0), action)
         self.prev_action = action
-        self.last_steps = steps.clone()
         self.plan_s += time.perf_counter() - t0
         self.planned += len(rows)
         return action.to(obs["node_poses"].device)
@@ -254,7 +269,7 @@ def k_step_errors(model: EnsembleDynamics, start: torch.Tensor, actions: torch.T
     """Open-loop error of the members' mean from ``start`` (B, N, 2) under node ``actions`` (B, K, 3) against the
     true ropes (B, K, N, 2): ``pred_err_k`` (mean node distance [m] after k moves) and ``base_err_k`` ("nothing
     moves": the start rope) for each k in ``horizons``; ropes with ``alive`` False are left out."""
-    node, drag = decode_node_actions(actions.float(), model.p)
+    node, drag = decode_node_action(actions.float(), model.p)
     pos, preds = start.float(), []
     for t in range(actions.shape[1]):
         pos = model.mean_move(pos, node[:, t], drag[:, t])

@@ -20,20 +20,20 @@ from typing import Any
 import torch
 import torch.nn as nn
 
+from diffdlo.task import decode_drag, decode_node, encode_node_action
 
-# ====================================================================== hybrid action <-> env action (eq 2.6)
+
+# ====================================================================== hybrid action <-> env action (eq 2.6, diffdlo.task)
 def to_env_action(node: torch.Tensor, drag: torch.Tensor, n_nodes: int) -> torch.Tensor:
     """(B,) node ids and (B, 2) drags in [-1, 1] (clipped) -> (B, 3) env node actions in [0, 1]."""
     if node.numel() and (int(node.min()) < 0 or int(node.max()) >= n_nodes):
         raise ValueError(f"node ids must lie in [0, {n_nodes - 1}], got {node.tolist()}")
-    a0 = node.to(drag.dtype) / (n_nodes - 1)
-    return torch.cat([a0.unsqueeze(-1), (drag.clamp(-1.0, 1.0) + 1.0) / 2.0], dim=-1)
+    return encode_node_action(node, drag, n_nodes, 1.0)
 
 
 def from_env_action(action: torch.Tensor, n_nodes: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, 3) env node actions -> (B,) node ids (as the env decodes them) and (B, 2) drags in [-1, 1]."""
-    node = torch.round(action[:, 0].clamp(0.0, 1.0) * (n_nodes - 1)).to(torch.int64)
-    return node, action[:, 1:].clamp(0.0, 1.0) * 2.0 - 1.0
+    return decode_node(action[:, 0], n_nodes), decode_drag(action[:, 1:].clamp(0.0, 1.0), 1.0)
 
 
 def split(stored: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.common import read_csv
+from agents.logs import read_csv
 
 PANELS = [("eval", "success_rate", "eval success rate"), ("eval", "mean_reward", "eval mean reward"),
           ("eval", "mean_length", "eval episode length"), ("rollout", "ep_reward", "rollout mean reward"),

@@ -3,7 +3,7 @@ config -> networks -> loop.
 
     python -m agents.ppo --target random --obs points --action node --total-steps 1000000 --num-envs 16 --out runs/ppo
 
-Env: ``BatchedShapeControl`` directly (tensors end to end) through ``agents.common.TrainEnv`` (one batched step, one
+Env: ``BatchedShapeControl`` directly (tensors end to end) through ``agents.envs.TrainEnv`` (one batched step, one
 masked reset of the ended ropes). Each rollout fills the shared ``ReplayBuffer`` from row 0 (n_steps rows x num_envs)
 with log-probs and values; GAE(lambda) bootstraps a truncated step from V(true final observation) and never a
 terminated one.
@@ -29,60 +29,29 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 import torch.nn as nn
-from tqdm import tqdm
 
 from agents import hybrid
 from agents.buffer import ReplayBuffer
-from agents.common import (CHECKPOINT, EpisodeStats, Logger, Features, eval_row, evaluate, fmt_postfix,
-                           evaluate_heldout, heldout_envs, load_checkpoint, make_env, make_params, mlp, rng_state,
-                           run_cli, save_checkpoint, seed_everything, set_rng_state, shift_images, torch_threads,
-                           write_results)
+from agents.cli import run_cli
+from agents.config import InputOptions, RunOptions, TaskOptions, check_policy, part
+from agents.networks import Features, mlp, shift_images
+from agents.run import Run, learner
 
 
 # ====================================================================== config (defaults: params/ppo.yaml)
 @dataclasses.dataclass
 class PPOConfig:
-    # task
-    target: Any = "random"
-    obs: str = "points"
-    action: str = "node"
-    reward: str = "position_orientation"
-    max_steps: int | None = None
-    params: str = "cable"
-    param_overrides: dict | None = None
-    start: Any = None
-    success_tol: float | None = None      # None: params' 0.01 m
-    image_size: int = 64
-    success_bonus: float | None = None    # None: params' 20 (Algorithm 2)
-    step_penalty: float = 0.0
-    on_exit: str = "truncate"             # "fail": leaving the workspace terminates the episode
-    exit_penalty: float = 0.0
-    curve_max_turn_deg: float = 12.0      # target "random_curve": the largest turn per node [deg]
-    mark_end: bool = False                # images: a dot on node 0 of rope and target (env option)
-    # run
-    total_steps: int = 1_000_000
-    num_envs: int = 16
-    seed: int = 0
-    device: str = "cpu"                   # networks and buffer
-    env_device: str = ""                  # the simulator ("": same as device; "cpu" with device "cuda": fused CPU kernel)
-    threads: int = 1
-    eval_every: int = 20_000
-    eval_episodes: int = 20
-    eval_seed: int = 10_000
-    eval_targets: list = dataclasses.field(default_factory=list)   # held-out targets evaluated at the end
-    checkpoint_every: int = 50_000       # checked after each rollout + update
-    log_every: int = 1                   # rollouts between train-loss rows
-    # algorithm
+    task: TaskOptions = part(TaskOptions)
+    run: RunOptions = part(RunOptions, total_steps=1_000_000, eval_every=20_000, checkpoint_every=50_000, log_every=1)
+    inputs: InputOptions = part(InputOptions)
+    # checkpoints and evaluations are checked after each rollout + update; log_every counts rollouts
     policy: str = "gaussian"              # "hybrid" | "gaussian"
-    features: str = "raw"                 # "relative" | "raw"
-    normalize_obs: bool = False           # running mean/std of the features (relative features only)
     anneal_lr: bool = False               # lr decays linearly to 0 over total_steps (CleanRL anneal_lr)
     lr: float = 3e-4
     n_steps: int = 2048                  # rows per rollout (per env)
@@ -97,11 +66,12 @@ class PPOConfig:
     normalize_advantage: bool = True
     log_std_init: float = -0.6931471805599453   # log 0.5
     hidden: list = dataclasses.field(default_factory=lambda: [64, 64])
-    cnn_channels: list = dataclasses.field(default_factory=lambda: [32, 64, 64])
-    features_dim: int = 256
-    encoder: str = "nature"               # images: "nature" (SB3 NatureCNN) | "keypoints" (spatial softmax)
-    keypoints: int = 32                   # encoder "keypoints": feature maps -> 2 x keypoints coordinates
-    augment_shift: int = 0                # images: DrQ random shift of up to this many pixels (0: off)
+
+    def check(self) -> None:
+        self.task.check()
+        self.run.check()
+        self.inputs.check(self.task)
+        check_policy(self.policy, self.task)
 
 
 # ====================================================================== networks
@@ -168,7 +138,7 @@ class ActorCritic(nn.Module):
     def __init__(self, obs_example: Any, action_dim: int, cfg: PPOConfig, length: float, n_nodes: int):
         super().__init__()
         self.hybrid, self.n_nodes = cfg.policy == "hybrid", n_nodes
-        self.features = Features(obs_example, cfg, length)
+        self.features = Features(obs_example, cfg.inputs, length)
         feat_dim = self.features.out_dim
         last = cfg.hidden[-1] if cfg.hidden else feat_dim
         self.pi = ortho(mlp(feat_dim, cfg.hidden, None, nn.Tanh), math.sqrt(2))
@@ -212,70 +182,39 @@ def clipped_surrogate(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advant
 
 
 # ====================================================================== training loop
+@learner
 def train(cfg: PPOConfig, out: Path | str, resume: bool = False, progress: bool = True) -> dict[str, Any]:
-    with torch_threads(cfg.threads):
-        return _train(cfg, out, resume, progress)
-
-
-def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dict[str, Any]:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = torch.device(cfg.device)
-    seed_everything(cfg.seed)
-    env = make_env(cfg, cfg.num_envs)
-    eval_env = make_env(cfg, min(cfg.eval_episodes, 32))
-    heldout = heldout_envs(cfg)
-    obs = env.reset(seed=cfg.seed)
+    run = Run("ppo", cfg, out, resume, progress)
+    env, device, obs, num_envs = run.env, run.device, run.obs, cfg.run.num_envs
     action_dim = env.core.action_dim
-    params = make_params(cfg)
-    agent = ActorCritic(obs, action_dim, cfg, params.length, params.n_nodes).to(device)
+    agent = ActorCritic(obs, action_dim, cfg, run.params.length, run.params.n_nodes).to(device)
     opt = torch.optim.Adam(agent.parameters(), lr=cfg.lr, eps=1e-5)   # SB3 PPO uses Adam eps 1e-5
-    rb = ReplayBuffer(cfg.n_steps, cfg.num_envs, obs, action_dim, device, store_log_prob=True, store_value=True)
-    stats = EpisodeStats()
-    step, n_updates, last_eval, last_ckpt, wall_before, rollouts = 0, 0, 0, 0, 0.0, 0
-    last_success: float | None = None
-    if resume:
-        ck = load_checkpoint(out / CHECKPOINT)
-        agent.load_state_dict(ck["agent"])
-        opt.load_state_dict(ck["opt"])
-        rb.load_state_dict(ck["buffer"])
-        env.load_state_dict(ck["env"])
-        obs = env.observe()
-        stats.buf.extend(ck["episode_stats"])
-        step, n_updates, last_eval, last_ckpt = ck["step"], ck["n_updates"], ck["last_eval"], ck["last_ckpt"]
-        rollouts, last_success, wall_before = ck["rollouts"], ck["last_success"], ck["wall_s"]
-        set_rng_state(ck["rng"])
-    logger = Logger(out, resume_step=step if resume else None)
+    rb = ReplayBuffer(cfg.n_steps, num_envs, obs, action_dim, device, store_log_prob=True, store_value=True)
+    ck = run.start(agent=agent, opt=opt, buffer=rb)
+    n_updates, rollouts = (ck["n_updates"], ck["rollouts"]) if ck else (0, 0)
+    obs, logger, bar = run.obs, run.logger, run.bar
 
     def policy(o: Any, deterministic: bool) -> torch.Tensor:
         return agent.act(o, deterministic)
 
-
-    t0 = time.perf_counter()
-    res = None
-    per_rollout = cfg.n_steps * cfg.num_envs
-    bar = tqdm(total=cfg.total_steps, initial=min(step, cfg.total_steps), desc="ppo", disable=not progress,
-               dynamic_ncols=True, file=sys.stderr)
-    while step < cfg.total_steps:
+    per_rollout = cfg.n_steps * num_envs
+    while run.step < cfg.run.total_steps:
         if cfg.anneal_lr:
             for group in opt.param_groups:
-                group["lr"] = cfg.lr * max(0.0, 1.0 - step / cfg.total_steps)
+                group["lr"] = cfg.lr * max(0.0, 1.0 - run.step / cfg.run.total_steps)
         # ---- collect one rollout into rows [0, n_steps)
         rb.reset()
         for _ in range(cfg.n_steps):
-            seen = shift_images(obs, cfg.augment_shift)   # DrQ shift: stored as seen, so the ratio is of one obs
+            seen = shift_images(obs, cfg.inputs.augment_shift)   # DrQ shift: stored as seen, so the ratio is of one obs
             with torch.no_grad():
                 d, value = agent.dist(seen, update_norm=True)
                 u = d.sample()
                 log_prob = d.log_prob(u)
             next_obs, reward, term, trunc, info, final_obs = env.step(agent.env_action(u))
             rb.add(seen, u, reward, term, trunc, final_obs=final_obs, log_prob=log_prob, value=value)
-            done = (term | trunc).cpu()
-            if bool(done.any()):
-                stats.add(info, done)
+            run.count(info, term, trunc, update_bar=False)
             obs = next_obs
-            step += cfg.num_envs
-        bar.update(min(per_rollout, cfg.total_steps - bar.n))
+        bar.update(min(per_rollout, cfg.run.total_steps - bar.n))
         rollouts += 1
         with torch.no_grad():
             last_value = agent.value(obs)
@@ -301,39 +240,22 @@ def _train(cfg: PPOConfig, out: Path | str, resume: bool, progress: bool) -> dic
                 with torch.no_grad():
                     clip_fracs.append(((ratio - 1).abs() > cfg.clip_range).float().mean().item())
                     kls.append(((ratio - 1) - (ratio.log())).mean().item())
-        if rollouts % cfg.log_every == 0:
+        if rollouts % cfg.run.log_every == 0:
             values, returns = rb.value[: len(rb)].flatten(), rb.returns.flatten()
             explained = float(1 - (returns - values).var() / returns.var()) if returns.var() > 0 else float("nan")
-            logger.log("train", step, {"actor_loss": pg_loss.item(), "critic_loss": v_loss.item(),
-                                       "entropy": entropy.item(), "ent_coef": cfg.ent_coef,
-                                       "approx_kl": float(np.mean(kls)), "clip_fraction": float(np.mean(clip_fracs)),
-                                       "explained_variance": explained, "std": agent.log_std.exp().mean().item(),
-                                       "n_updates": n_updates, "lr": opt.param_groups[0]["lr"]})
-            if stats.buf:
-                logger.log("rollout", step, stats.means())
+            logger.log("train", run.step, {"actor_loss": pg_loss.item(), "critic_loss": v_loss.item(),
+                                           "entropy": entropy.item(), "ent_coef": cfg.ent_coef,
+                                           "approx_kl": float(np.mean(kls)),
+                                           "clip_fraction": float(np.mean(clip_fracs)),
+                                           "explained_variance": explained, "std": agent.log_std.exp().mean().item(),
+                                           "n_updates": n_updates, "lr": opt.param_groups[0]["lr"]})
+            run.log_rollout()
 
         # ---- evaluate, checkpoint (at rollout boundaries)
-        if step - last_eval >= cfg.eval_every or step >= cfg.total_steps:
-            last_eval = step
-            res = evaluate(policy, eval_env, cfg.eval_episodes, seed=cfg.eval_seed)
-            last_success = res["success_rate"]
-            logger.log("eval", step, eval_row(res))
-            bar.set_postfix(fmt_postfix(last_success))
-        if step - last_ckpt >= cfg.checkpoint_every or step >= cfg.total_steps:
-            last_ckpt = step
-            save_checkpoint(out / CHECKPOINT, {
-                "algo": "ppo", "config": dataclasses.asdict(cfg), "agent": agent.state_dict(),
-                "opt": opt.state_dict(), "buffer": rb.state_dict(), "env": env.state_dict(),
-                "episode_stats": list(stats.buf), "step": step, "n_updates": n_updates, "rollouts": rollouts,
-                "last_eval": last_eval, "last_ckpt": last_ckpt, "last_success": last_success,
-                "wall_s": wall_before + time.perf_counter() - t0, "rng": rng_state()})
-    bar.close()
-
-    if res is None:
-        res = evaluate(policy, eval_env, cfg.eval_episodes, seed=cfg.eval_seed)
-    logger.close()
-    wall = wall_before + time.perf_counter() - t0                # training and its evaluations; not the held-out
-    return write_results(out, "ppo", cfg, res, step, wall, heldout=evaluate_heldout(policy, heldout, cfg))
+        run.evaluate_if_due(lambda: run.evaluate(policy))
+        run.checkpoint_if_due(lambda: {"agent": agent, "opt": opt, "buffer": rb, "n_updates": n_updates,
+                                       "rollouts": rollouts})
+    return run.finish(policy)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,7 +14,7 @@ ELBO per step (maximised; we minimise its negative): E_q[ln p(o_t|s_t)] + E_q[ln
 
 Observations: any env observation (dict of tensors). Float parts (points, distance) are scaled by 1 / rope length
 and decoded by an MLP; uint8 images (image, target_image stacked along channels) are encoded by the project's
-NatureCNN (``agents.common.ObsEncoder``) and decoded by a transposed-conv decoder to pixels in [-0.5, 0.5].
+NatureCNN (``agents.networks.ObsEncoder``) and decoded by a transposed-conv decoder to pixels in [-0.5, 0.5].
 Node actions enter the model as one-hot(node) + the two drags (the dynamics depend on which node is grasped, and
 the env rounds a0 to a node anyway); pixel actions enter as they are.
 """
@@ -28,7 +28,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from agents.common import ObsEncoder, mlp
+from agents.networks import ObsEncoder, mlp
+from diffdlo.task import decode_node
 
 State = dict[str, torch.Tensor]   # {"h": (..., D), "z": (..., S), "mean": (..., S), "std": (..., S)}
 
@@ -116,7 +117,7 @@ class RSSM(nn.Module):
         a = a.clamp(0.0, 1.0).float()
         if self.action_type != "node":
             return a
-        node = torch.round(a[..., 0] * (self.n_nodes - 1)).long()
+        node = decode_node(a[..., 0], self.n_nodes)
         return torch.cat([F.one_hot(node, self.n_nodes).float(), a[..., 1:]], dim=-1)
 
     def _dist(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

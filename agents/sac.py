@@ -2,7 +2,7 @@
 
     python -m agents.sac --target random --obs points --action node --total-steps 100000 --num-envs 16 --out runs/sac
 
-Env: ``BatchedShapeControl`` directly (tensors end to end) through ``agents.common.TrainEnv``: one batched step of
+Env: ``BatchedShapeControl`` directly (tensors end to end) through ``agents.envs.TrainEnv``: one batched step of
 all ropes, then ONE masked reset of the ropes whose episode ended (same-step autoreset: the final observation is
 returned separately and stored in the replay buffer, so a truncated transition bootstraps from its true last
 observation; a terminated one does not bootstrap).
@@ -35,53 +35,23 @@ from typing import Any
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from agents import hybrid
 from agents.buffer import ReplayBuffer
-from agents.common import (CHECKPOINT, EpisodeStats, Logger, Features, eval_row, evaluate, fmt_postfix,
-                           evaluate_heldout, heldout_envs, load_checkpoint, make_env, make_params, mlp, rng_state,
-                           run_cli, save_checkpoint, seed_everything, set_rng_state, shift_images, torch_threads,
-                           warn_if_large_buffer, write_results)
+from agents.checkpoints import warn_if_large_buffer
+from agents.cli import run_cli
+from agents.config import InputOptions, RunOptions, TaskOptions, check_policy, part
+from agents.networks import Features, mlp, shift_images
+from agents.run import Run, learner
 
 
 # ====================================================================== config (defaults: params/sac.yaml)
 @dataclasses.dataclass
 class SACConfig:
-    # task
-    target: Any = "random"
-    obs: str = "points"
-    action: str = "node"
-    reward: str = "position_orientation"
-    max_steps: int | None = None          # actions per episode (None: params' 100)
-    params: str = "cable"
-    param_overrides: dict | None = None   # e.g. {n_nodes: 6, length: 0.15} for quick tests
-    start: Any = None                     # None (random start) or a .npy path / (N, 2) list: a fixed start shape
-    success_tol: float | None = None      # None: params' 0.01 m
-    image_size: int = 64
-    success_bonus: float | None = None    # None: params' 20 (Algorithm 2)
-    step_penalty: float = 0.0
-    on_exit: str = "truncate"             # "fail": leaving the workspace terminates the episode
-    exit_penalty: float = 0.0
-    curve_max_turn_deg: float = 12.0      # target "random_curve": the largest turn per node [deg]
-    mark_end: bool = False                # images: a dot on node 0 of rope and target (env option)
-    # run
-    total_steps: int = 100_000            # env transitions, all envs together
-    num_envs: int = 16
-    seed: int = 0
-    device: str = "cpu"                   # networks and buffer
-    env_device: str = ""                  # the simulator ("": same as device; "cpu" with device "cuda": fused CPU kernel)
-    threads: int = 1                      # torch CPU threads during training (restored afterwards)
-    eval_every: int = 5_000
-    eval_episodes: int = 20
-    eval_seed: int = 10_000
-    eval_targets: list = dataclasses.field(default_factory=list)   # held-out targets evaluated at the end
-    checkpoint_every: int = 10_000
-    log_every: int = 100                  # gradient updates between train-loss rows
-    # algorithm
+    task: TaskOptions = part(TaskOptions)
+    run: RunOptions = part(RunOptions, total_steps=100_000, eval_every=5_000, checkpoint_every=10_000, log_every=100)
+    inputs: InputOptions = part(InputOptions)
     policy: str = "gaussian"              # "hybrid" | "gaussian"
-    features: str = "raw"                 # "relative" | "raw"
-    normalize_obs: bool = False           # running mean/std of the features (relative features only)
     lr: float = 3e-4
     buffer_size: int = 1_000_000          # transitions (rows = buffer_size // num_envs)
     batch_size: int = 256
@@ -95,13 +65,14 @@ class SACConfig:
     target_entropy_node: float = 0.5      # hybrid: target entropy of the node categorical [nats]
     hidden: list = dataclasses.field(default_factory=lambda: [256, 256])
     head_hidden: int = 256                # hybrid: width of the critic's per-node head
-    cnn_channels: list = dataclasses.field(default_factory=lambda: [32, 64, 64])
-    features_dim: int = 256
-    encoder: str = "nature"               # images: "nature" (SB3 NatureCNN) | "keypoints" (spatial softmax)
-    keypoints: int = 32                   # encoder "keypoints": feature maps -> 2 x keypoints coordinates
-    augment_shift: int = 0                # images: DrQ random shift of up to this many pixels (0: off)
     log_std_min: float = -5.0
     log_std_max: float = 2.0
+
+    def check(self) -> None:
+        self.task.check()
+        self.run.check()
+        self.inputs.check(self.task)
+        check_policy(self.policy, self.task)
 
 
 # ====================================================================== networks
@@ -117,7 +88,7 @@ class Actor(nn.Module):
 
     def __init__(self, obs_example: Any, action_dim: int, cfg: SACConfig, length: float):
         super().__init__()
-        self.feat = Features(obs_example, cfg, length)
+        self.feat = Features(obs_example, cfg.inputs, length)
         self.trunk = mlp(self.feat.out_dim, cfg.hidden, None)
         last = cfg.hidden[-1] if cfg.hidden else self.feat.out_dim
         self.mean, self.log_std = nn.Linear(last, action_dim), nn.Linear(last, action_dim)
@@ -138,7 +109,7 @@ class Critic(nn.Module):
 
     def __init__(self, obs_example: Any, action_dim: int, cfg: SACConfig, length: float):
         super().__init__()
-        self.feat = Features(obs_example, cfg, length)
+        self.feat = Features(obs_example, cfg.inputs, length)
         self.q1 = mlp(self.feat.out_dim + action_dim, cfg.hidden, 1)
         self.q2 = mlp(self.feat.out_dim + action_dim, cfg.hidden, 1)
 
@@ -155,7 +126,7 @@ class HybridActor(nn.Module):
 
     def __init__(self, obs_example: Any, cfg: SACConfig, length: float, n_nodes: int):
         super().__init__()
-        self.feat, self.n = Features(obs_example, cfg, length), n_nodes
+        self.feat, self.n = Features(obs_example, cfg.inputs, length), n_nodes
         self.trunk = mlp(self.feat.out_dim, cfg.hidden, None)
         last = cfg.hidden[-1] if cfg.hidden else self.feat.out_dim
         self.out = nn.Linear(last, n_nodes * 5)             # N logits, N x 2 means, N x 2 log-stds
@@ -197,7 +168,7 @@ class HybridCritic(nn.Module):
 
     def __init__(self, obs_example: Any, cfg: SACConfig, length: float, n_nodes: int, ensemble: int = 2):
         super().__init__()
-        self.feat, self.e = Features(obs_example, cfg, length), ensemble
+        self.feat, self.e = Features(obs_example, cfg.inputs, length), ensemble
         dims = [self.feat.out_dim, *cfg.hidden]
         self.trunk = nn.ModuleList(EnsembleLinear(ensemble, a, b) for a, b in zip(dims[:-1], dims[1:]))
         h = cfg.head_hidden
@@ -249,65 +220,38 @@ def hybrid_soft_value(log_pk: torch.Tensor, q: torch.Tensor, log_pd: torch.Tenso
 
 
 # ====================================================================== training loop
+@learner
 def train(cfg: SACConfig, out: Path | str, resume: bool = False, progress: bool = True) -> dict[str, Any]:
-    with torch_threads(cfg.threads):
-        return _train(cfg, out, resume, progress)
-
-
-def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dict[str, Any]:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = torch.device(cfg.device)
-    seed_everything(cfg.seed)
-    env = make_env(cfg, cfg.num_envs)
-    eval_env = make_env(cfg, min(cfg.eval_episodes, 32))
-    heldout = heldout_envs(cfg)
-    obs = env.reset(seed=cfg.seed)
-    params = make_params(cfg)
-    n_nodes, action_dim = params.n_nodes, env.core.action_dim
+    run = Run("sac", cfg, out, resume, progress)
+    env, device, obs = run.env, run.device, run.obs
+    n_nodes, action_dim, length = run.params.n_nodes, env.core.action_dim, run.params.length
     is_hybrid = cfg.policy == "hybrid"
 
     if is_hybrid:
-        actor = HybridActor(obs, cfg, params.length, n_nodes).to(device)
-        critic = HybridCritic(obs, cfg, params.length, n_nodes).to(device)
+        actor = HybridActor(obs, cfg, length, n_nodes).to(device)
+        critic = HybridCritic(obs, cfg, length, n_nodes).to(device)
     else:
-        actor = Actor(obs, action_dim, cfg, params.length).to(device)
-        critic = Critic(obs, action_dim, cfg, params.length).to(device)
+        actor = Actor(obs, action_dim, cfg, length).to(device)
+        critic = Critic(obs, action_dim, cfg, length).to(device)
     critic_target = copy.deepcopy(critic).requires_grad_(False)
-    init = float(math.log(cfg.ent_coef_init))
-    log_alpha = torch.tensor(init, device=device, requires_grad=True)          # the drag's (hybrid) or the only one
-    log_alpha_node = torch.tensor(init, device=device, requires_grad=True)     # hybrid: the node's
+    # the drag's temperature (hybrid) or the only one, and the node's (hybrid)
+    temperatures = nn.ParameterDict({k: nn.Parameter(torch.tensor(float(math.log(cfg.ent_coef_init)), device=device))
+                                     for k in ("log_alpha", "log_alpha_node")})
+    log_alpha, log_alpha_node = temperatures["log_alpha"], temperatures["log_alpha_node"]
     target_entropy = (-2.0 if is_hybrid else -float(action_dim)) if cfg.target_entropy is None \
         else float(cfg.target_entropy)
     actor_opt = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
     critic_opt = torch.optim.Adam(critic.parameters(), lr=cfg.lr)
     alpha_opt = torch.optim.Adam([log_alpha, log_alpha_node], lr=cfg.lr)
-    rows = max(2, cfg.buffer_size // cfg.num_envs)
-    warn_if_large_buffer(rows, cfg.num_envs, obs)
-    rb = ReplayBuffer(rows, cfg.num_envs, obs, action_dim, device)
-    stats = EpisodeStats()
-    step, n_updates, last_eval, last_ckpt, wall_before, update_s = 0, 0, 0, 0, 0.0, 0.0
-    last_success: float | None = None
-
-    if resume:
-        ck = load_checkpoint(out / CHECKPOINT)
-        actor.load_state_dict(ck["actor"])
-        critic.load_state_dict(ck["critic"])
-        critic_target.load_state_dict(ck["critic_target"])
-        with torch.no_grad():
-            log_alpha.copy_(ck["log_alpha"])
-            log_alpha_node.copy_(ck["log_alpha_node"])
-        actor_opt.load_state_dict(ck["actor_opt"])
-        critic_opt.load_state_dict(ck["critic_opt"])
-        alpha_opt.load_state_dict(ck["alpha_opt"])
-        rb.load_state_dict(ck["buffer"])
-        env.load_state_dict(ck["env"])
-        obs = env.observe()
-        stats.buf.extend(ck["episode_stats"])
-        step, n_updates, last_eval, last_ckpt = ck["step"], ck["n_updates"], ck["last_eval"], ck["last_ckpt"]
-        last_success, wall_before, update_s = ck["last_success"], ck["wall_s"], ck["update_s"]
-        set_rng_state(ck["rng"])
-    logger = Logger(out, resume_step=step if resume else None)
+    rows = max(2, cfg.buffer_size // cfg.run.num_envs)
+    warn_if_large_buffer(rows, cfg.run.num_envs, obs)
+    rb = ReplayBuffer(rows, cfg.run.num_envs, obs, action_dim, device)
+    parts = dict(actor=actor, critic=critic, critic_target=critic_target, temperatures=temperatures,
+                 actor_opt=actor_opt, critic_opt=critic_opt, alpha_opt=alpha_opt, buffer=rb)
+    ck = run.start(**parts)
+    n_updates, update_s = (ck["n_updates"], ck["update_s"]) if ck else (0, 0.0)
+    obs = run.obs
+    logger = run.logger
     # the actor's normalizer is updated while collecting; the critics' follow it (Polyak copies buffers)
     critic_norms = [m.feat.norm for m in (critic, critic_target) if m.feat.norm is not None]
 
@@ -317,23 +261,12 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
             return hybrid.to_env_action(node, drag, n_nodes)
         return actor(o, deterministic)[0]
 
-    def checkpoint() -> None:
-        save_checkpoint(out / CHECKPOINT, {
-            "algo": "sac", "config": dataclasses.asdict(cfg), "actor": actor.state_dict(),
-            "critic": critic.state_dict(), "critic_target": critic_target.state_dict(),
-            "log_alpha": log_alpha.detach().clone(), "log_alpha_node": log_alpha_node.detach().clone(),
-            "actor_opt": actor_opt.state_dict(), "critic_opt": critic_opt.state_dict(),
-            "alpha_opt": alpha_opt.state_dict(), "buffer": rb.state_dict(), "env": env.state_dict(),
-            "episode_stats": list(stats.buf), "step": step, "n_updates": n_updates, "last_eval": last_eval,
-            "last_ckpt": last_ckpt, "last_success": last_success, "update_s": update_s,
-            "wall_s": wall_before + time.perf_counter() - t0, "rng": rng_state()})
-
     def augmented(b: dict[str, Any]) -> dict[str, Any]:
         """DrQ: every sampled picture shifted at random, obs and next_obs independently (Kostrikov et al. 2021)."""
-        if not cfg.augment_shift:
+        if not cfg.inputs.augment_shift:
             return b
-        return {**b, "obs": shift_images(b["obs"], cfg.augment_shift),
-                "next_obs": shift_images(b["next_obs"], cfg.augment_shift)}
+        return {**b, "obs": shift_images(b["obs"], cfg.inputs.augment_shift),
+                "next_obs": shift_images(b["next_obs"], cfg.inputs.augment_shift)}
 
     def gaussian_update(b: dict[str, Any]) -> dict[str, torch.Tensor]:
         alpha = log_alpha.exp().detach()
@@ -394,37 +327,29 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
                 "q_mean": q[0].mean(), "entropy": drag_entropy.mean(), "ent_coef": a_d,
                 "node_entropy": node_entropy.mean(), "ent_coef_node": a_k}
 
-    t0 = time.perf_counter()
-    res = None
-    bar = tqdm(total=cfg.total_steps, initial=min(step, cfg.total_steps), desc="sac", disable=not progress,
-               dynamic_ncols=True, file=sys.stderr)
-    while step < cfg.total_steps:
+    while run.step < cfg.run.total_steps:
         # ---- act
         with torch.no_grad():
             if actor.feat.norm is not None:
                 actor.feat(obs, update_norm=True)
                 for norm in critic_norms:
                     norm.load_state_dict(actor.feat.norm.state_dict())
-            if step < cfg.learning_starts:
+            if run.step < cfg.learning_starts:
                 if is_hybrid:
-                    action = hybrid.join(torch.randint(n_nodes, (cfg.num_envs,), device=device),
-                                         torch.rand(cfg.num_envs, 2, device=device) * 2 - 1)
+                    action = hybrid.join(torch.randint(n_nodes, (cfg.run.num_envs,), device=device),
+                                         torch.rand(cfg.run.num_envs, 2, device=device) * 2 - 1)
                 else:
-                    action = torch.rand(cfg.num_envs, action_dim, device=device)
+                    action = torch.rand(cfg.run.num_envs, action_dim, device=device)
             else:
                 action = actor.act(obs) if is_hybrid else actor(obs)[0]
         env_action = hybrid.to_env_action(*hybrid.split(action), n_nodes) if is_hybrid else action
         next_obs, reward, term, trunc, info, final_obs = env.step(env_action)
         rb.add(obs, action, reward, term, trunc, final_obs=final_obs)
-        done = (term | trunc).cpu()
-        if bool(done.any()):
-            stats.add(info, done)
+        run.count(info, term, trunc)
         obs = next_obs
-        step += cfg.num_envs
-        bar.update(cfg.num_envs)
 
         # ---- learn
-        if step >= cfg.learning_starts and (step // cfg.num_envs) % cfg.train_freq == 0:
+        if run.step >= cfg.learning_starts and (run.step // cfg.run.num_envs) % cfg.train_freq == 0:
             for _ in range(cfg.gradient_steps):
                 t_update = time.perf_counter()
                 b = rb.sample(cfg.batch_size)
@@ -436,30 +361,16 @@ def _train(cfg: SACConfig, out: Path | str, resume: bool, progress: bool) -> dic
                 polyak_update(critic, critic_target, cfg.tau)
                 update_s += time.perf_counter() - t_update
                 n_updates += 1
-                if n_updates % cfg.log_every == 0:
+                if n_updates % cfg.run.log_every == 0:
                     row = {("ent_coef_loss" if k == "alpha_loss" else k): v.item() for k, v in logs.items()}
-                    logger.log("train", step, {**row, "n_updates": n_updates})
-                    if stats.buf:
-                        logger.log("rollout", step, stats.means())
+                    logger.log("train", run.step, {**row, "n_updates": n_updates})
+                    run.log_rollout()
 
         # ---- evaluate, checkpoint
-        if step - last_eval >= cfg.eval_every or step >= cfg.total_steps:
-            last_eval = step
-            res = evaluate(policy, eval_env, cfg.eval_episodes, seed=cfg.eval_seed)
-            last_success = res["success_rate"]
-            logger.log("eval", step, eval_row(res))
-            bar.set_postfix(fmt_postfix(last_success))
-        if step - last_ckpt >= cfg.checkpoint_every or step >= cfg.total_steps:
-            last_ckpt = step
-            checkpoint()
-    bar.close()
+        run.evaluate_if_due(lambda: run.evaluate(policy))
+        run.checkpoint_if_due(lambda: {**parts, "n_updates": n_updates, "update_s": update_s})
 
-    if res is None:   # nothing left to train (resumed at the end): evaluate the loaded policy
-        res = evaluate(policy, eval_env, cfg.eval_episodes, seed=cfg.eval_seed)
-    logger.close()
-    wall = wall_before + time.perf_counter() - t0                # training and its evaluations; not the held-out
-    return write_results(out, "sac", cfg, res, step, wall, heldout=evaluate_heldout(policy, heldout, cfg),
-                         extra={"n_updates": n_updates, "ms_per_update": 1000 * update_s / max(n_updates, 1)})
+    return run.finish(policy, extra={"n_updates": n_updates, "ms_per_update": 1000 * update_s / max(n_updates, 1)})
 
 
 def main(argv: list[str] | None = None) -> int:

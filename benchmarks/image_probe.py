@@ -3,7 +3,7 @@
     python -m benchmarks.image_probe --encoders keypoints nature --samples 16384 --epochs 10 --out runs/image_probe
 
 The points learners act on the per-node error (centred rope - centred target, agents/hybrid.py). This trains each
-encoder (the one in front of the image learners, agents.common.ObsEncoder, plus the learners' MLP) to REGRESS that
+encoder (the one in front of the image learners, agents.networks.ObsEncoder, plus the learners' MLP) to REGRESS that
 error from the env's image observation (rope picture + target picture, params/ppo-image.yaml's settings: 64 px,
 end markers), on rope states visited by random moves from random starts, and reports the error of the regression
 on held-out states in centimetres per node coordinate. If an encoder cannot read the per-node error to well under
@@ -22,7 +22,8 @@ import torch
 import torch.nn as nn
 from tqdm import tqdm
 
-from agents.common import ObsEncoder, mlp, seed_everything, shift_images
+from agents.checkpoints import seed_everything
+from agents.networks import ObsEncoder, mlp, shift_images
 from agents.hybrid import relative_features
 from diffdlo.envs.shape_control import BatchedShapeControl
 
@@ -37,7 +38,7 @@ def collect(samples: int, seed: int, image_size: int, mark_end: bool, target: st
     while sum(len(e) for e in errors) < samples:
         for k in obs:
             images[k].append(obs[k])
-        pos, tgt = env.pos.detach(), env.target.detach()
+        pos, tgt = env.get_state().pos.detach(), env.get_state().target.detach()
         errors.append(relative_features(pos - tgt, 1.0).view(envs, n, 2))   # the points learners' diff, in m
         obs, _, term, trunc, _ = env.step(torch.rand(envs, 3, generator=g))
         ended = term | trunc

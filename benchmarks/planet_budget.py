@@ -27,7 +27,10 @@ import torch
 from tqdm import tqdm
 
 from agents import planet
-from agents.common import CHECKPOINT, evaluate, load_checkpoint, make_env
+from agents import config
+from agents.checkpoints import CHECKPOINT, load_checkpoint
+from agents.envs import make_env
+from agents.evaluation import evaluate
 from diffdlo.shapes import TargetError
 
 
@@ -59,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         ck = load_checkpoint(Path(args.run) / CHECKPOINT)
     except FileNotFoundError as exc:
         ap.error(str(exc))
-    cfg = planet.PlaNetConfig(**ck["config"])
+    cfg = config.from_flat(planet.PlaNetConfig, ck["config"])
     if cfg.model != "ensemble":
         ap.error(f"{args.run} holds a PlaNet with model {cfg.model!r}; this benchmark plans through the ensemble")
     args.horizons = args.horizons or [cfg.horizon]
@@ -67,26 +70,28 @@ def main(argv: list[str] | None = None) -> int:
     args.iterations = args.iterations or [cfg.iterations]
     args.propagations = args.propagations or [cfg.propagation]
     torch.set_num_threads(args.threads)
-    n = args.episodes or cfg.eval_episodes
-    cfg = dataclasses.replace(cfg, device="cpu", env_device="cpu")
-    targets = args.targets or [cfg.target]
+    n = args.episodes or cfg.run.eval_episodes
+    cfg = config.replace(cfg, device="cpu", env_device="cpu")
+    params = cfg.task.cable_params()
+    targets = args.targets or [cfg.task.target]
     try:
-        envs = {str(t): make_env(dataclasses.replace(cfg, target=t), min(n, 32)) for t in targets}
+        envs = {str(t): make_env(dataclasses.replace(cfg.task, target=t), cfg.run, params, min(n, 32))
+                for t in targets}
     except (ValueError, TargetError) as exc:
         ap.error(f"bad --targets: {exc}")
     env = next(iter(envs.values()))
-    model = planet.build_model(cfg, env.reset(seed=0), env.core.action_dim)
+    model = planet.build_model(cfg, env.reset(seed=0), env.core.action_dim, params)
     model.load_state_dict(ck["model"])
     model.eval()
     rows = []
     grid = list(itertools.product(targets, args.horizons, args.candidates, args.iterations, args.propagations))
     for target, h, c, it, prop in tqdm(grid, desc="budgets", file=sys.stderr):
         env = envs[str(target)]
-        run_cfg = dataclasses.replace(cfg, horizon=h, candidates=c, elites=max(1, c // 10), iterations=it,
+        run_cfg = config.replace(cfg, horizon=h, candidates=c, elites=max(1, c // 10), iterations=it,
                                       propagation=prop)
-        planner = planet.make_planner(model, run_cfg, env.core, cfg.eval_seed)
+        planner = planet.make_planner(model, run_cfg, env.core, cfg.run.eval_seed)
         t0 = time.perf_counter()
-        r = evaluate(planner, env, n, seed=cfg.eval_seed)
+        r = evaluate(planner, env, n, seed=cfg.run.eval_seed)
         succ = [e for e in r["episodes"] if e["success"]]
         rows.append({"target": str(target), "horizon": h, "candidates": c, "iterations": it, "propagation": prop,
                      "success_rate": r["success_rate"],
@@ -102,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
               f"final error {100 * row['mean_final_error']:.2f} cm, plan {row['plan_ms_per_env_step']:.0f} ms per "
               f"env step ({env.num_envs} ropes together)", flush=True)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps({"run": str(args.run), "episodes": n, "eval_seed": cfg.eval_seed,
+    (out / "results.json").write_text(json.dumps({"run": str(args.run), "episodes": n, "eval_seed": cfg.run.eval_seed,
                                                   "rows": rows}, indent=2))
     return 0
 

@@ -23,9 +23,10 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents import planet                                    # noqa: E402
+from agents import openloop, planet                          # noqa: E402
 from agents.buffer import ReplayBuffer                       # noqa: E402
-from agents.common import load_config, make_env, preset_path  # noqa: E402
+from agents.config import load_config, preset_path  # noqa: E402
+from agents.envs import make_env  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,11 +46,11 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--set expects KEY=VALUE, got {bad[0]!r}")
     overrides = {k.strip(): yaml.safe_load(v) for k, v in (item.split("=", 1) for item in args.set)}
     cfg = load_config(planet.PlaNetConfig, preset_path("planet", args.preset), overrides)
-    planet.check_planet_config(cfg)
     torch.manual_seed(args.seed)
-    env = make_env(cfg, args.envs)
+    params = cfg.task.cable_params()
+    env = make_env(cfg.task, cfg.run, params, args.envs)
     obs = env.reset(seed=args.seed)
-    model = planet.build_model(cfg, obs, env.core.action_dim)
+    model = planet.build_model(cfg, obs, env.core.action_dim, params)
     if args.plan_time:
         planner = planet.make_planner(model, cfg, env.core, args.seed)
         for i in range(3):
@@ -81,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         opt.step()
         if u in marks:
             model.eval()
-            ol = planet.open_loop_eval(model, cfg, horizons=(1, 2, 5, 10))
+            ol = openloop.open_loop_eval(model, cfg, horizons=(1, 2, 5, 10))
             model.train()
             errs = "  ".join(f"k={k}: {100 * ol[f'pred_err_{k}']:.2f} / {100 * ol[f'base_err_{k}']:.2f}"
                              for k in (1, 2, 5, 10))

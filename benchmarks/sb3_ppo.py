@@ -26,7 +26,9 @@ import torch
 from gymnasium import spaces
 
 import diffdlo
-from agents.common import evaluate, load_config, preset_path
+from agents.config import load_config, preset_path
+from agents.envs import make_env
+from agents.evaluation import evaluate
 from agents.hybrid import relative_features
 from agents.ppo import PPOConfig
 from diffdlo.envs import BatchedShapeControl
@@ -38,9 +40,7 @@ except ImportError as exc:            # the [dev] extra
 
 
 def make_core(cfg: PPOConfig, num_envs: int) -> BatchedShapeControl:
-    return BatchedShapeControl(num_envs=num_envs, target=cfg.target, obs_type="points", action_type="node",
-                               reward=cfg.reward, success_bonus=cfg.success_bonus, step_penalty=cfg.step_penalty,
-                               on_exit=cfg.on_exit, exit_penalty=cfg.exit_penalty)
+    return make_env(cfg.task, cfg.run, cfg.task.cable_params(), num_envs).core     # the tuned task: points, node
 
 
 class BatchedVecEnv(VecEnv):
@@ -115,7 +115,7 @@ def main() -> None:
         raise SystemExit(f"{out / 'results.json'} exists: choose another --out (nothing is overwritten)")
     out.mkdir(parents=True, exist_ok=True)
     cfg = load_config(PPOConfig, preset_path("ppo", None), {"target": args.target, "seed": args.seed})
-    venv = VecNormalize(BatchedVecEnv(make_core(cfg, cfg.num_envs), args.seed), norm_obs=True, norm_reward=False,
+    venv = VecNormalize(BatchedVecEnv(make_core(cfg, cfg.run.num_envs), args.seed), norm_obs=True, norm_reward=False,
                         clip_obs=10.0, gamma=cfg.gamma)
     model = PPO("MlpPolicy", venv, learning_rate=lambda frac: cfg.lr * frac, n_steps=cfg.n_steps,
                 batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, gamma=cfg.gamma, gae_lambda=cfg.gae_lambda,
@@ -129,7 +129,7 @@ def main() -> None:
     train_s = time.perf_counter() - t0
     venv.training = False
 
-    length = diffdlo.load_params(cfg.params).length
+    length = diffdlo.load_params(cfg.task.params).length
 
     def policy(obs, deterministic: bool) -> torch.Tensor:
         x = venv.normalize_obs(relative_features(obs, length).numpy().astype(np.float32))

@@ -6,7 +6,7 @@ The comparison point for our SAC: same env (points observations, node actions, p
 reward, random targets), same update-to-data ratio (``--gradient-steps`` per vector step, default = num_envs, i.e.
 one update per transition as in SB3's single-env default), SB3's own vectorization (``make_vec_env``: a
 DummyVecEnv of single envs, as an SB3 user would run it), and the same evaluation as ``agents.sac``
-(``agents.common.evaluate`` on ``--eval-episodes`` episodes from seeds 10000 + i, deterministic policy).
+(``agents.evaluation.evaluate`` on ``--eval-episodes`` episodes from seeds 10000 + i, deterministic policy).
 Writes ``results.json`` (the fields every method writes, method "sb3_sac") and prints the wall time. Needs the [dev] extra (SB3).
 """
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 import diffdlo
-from agents.common import evaluate
+from agents.evaluation import evaluate
 from diffdlo.envs import ENV_ID, BatchedShapeControl
 
 

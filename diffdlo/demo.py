@@ -9,6 +9,7 @@ import torch
 
 import diffdlo
 from diffdlo import render
+from diffdlo.task import greedy_drags
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -23,14 +24,14 @@ def main(argv: list[str] | None = None) -> None:
     target = sim.target_shape("horizontal")
     pos = sim.random_shape(1, torch.Generator().manual_seed(args.seed))
     start = pos
-    # Drag the node farthest from its place in the (centroid-aligned) target 10 cm towards it, a few times.
+    # The greedy move, a few times: drag the node farthest from its place in the (centroid-aligned) target
+    # towards it, at most 10 cm.
     frames, titles, snapshots = [], ["start"], [pos[0]]
     t0 = time.perf_counter()
     for i in range(args.moves):
-        aligned = target - target.mean(0) + pos.mean(1, keepdim=True)
-        gap = aligned - pos
-        node = gap.norm(dim=-1).argmax(dim=-1)
-        delta = gap[0, node].clamp(-0.1, 0.1)
+        drags, dist = greedy_drags(pos, target, 0.1)
+        node = dist.argmax(dim=-1)
+        delta = drags[0, node]
         pos, info = sim.move(pos, node, delta, return_info=True, record_every=50)
         frames.append(info.frames[:, 0])
         snapshots.append(pos[0])

@@ -5,7 +5,7 @@ through the differentiable simulator, a greedy baseline, and the shared receding
     python -m planners.gradient --target diagonal
     python -m planners.greedy --target diagonal --max-steps 40
 """
-from .objective import SimObjective, decode_node_actions, encode_node_actions
+from .objective import SimObjective
 
 _LAZY = {"CEM": "cem", "CEMPlanner": "cem", "GradientPlanner": "gradient", "GreedyPlanner": "greedy"}
 
@@ -17,5 +17,4 @@ def __getattr__(name):   # lazy, so that `python -m planners.cem` does not impor
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["CEM", "CEMPlanner", "GradientPlanner", "GreedyPlanner", "SimObjective", "decode_node_actions",
-           "encode_node_actions"]
+__all__ = ["CEM", "CEMPlanner", "GradientPlanner", "GreedyPlanner", "SimObjective"]

@@ -13,7 +13,6 @@ forward; the new last step starts from the prior; the shifted best sequence is r
 """
 from __future__ import annotations
 
-import argparse
 from typing import Callable
 
 import torch
@@ -201,20 +200,11 @@ class CEMPlanner:
         self.cem.shift()
         return best[0]
 
-    @staticmethod
-    def add_args(parser: argparse.ArgumentParser) -> None:
-        g = parser.add_argument_group("CEM")
-        g.add_argument("--horizon", type=int, default=2, help="moves planned ahead (default 2)")
-        g.add_argument("--candidates", type=int, default=300, help="sequences per iteration (default 300)")
-        g.add_argument("--elites", type=int, default=30, help="elites refit per iteration (default 30)")
-        g.add_argument("--iterations", type=int, default=5, help="CEM iterations per control step (default 5)")
-        g.add_argument("--running-weight", type=float, default=0.5,
-                       help="weight of the intermediate states' error in the cost (default 0.5)")
-
-    @classmethod
-    def from_args(cls, sim, args) -> "CEMPlanner":
-        return cls(sim, horizon=args.horizon, candidates=args.candidates, elites=args.elites,
-                   iterations=args.iterations, running_weight=args.running_weight, seed=args.seed)
+    # the command line's options (planners/common.py): constructor argument -> (type, default, help)
+    OPTIONS = {"horizon": (int, 2, "moves planned ahead"), "candidates": (int, 300, "sequences per iteration"),
+               "elites": (int, 30, "elites refit per iteration"),
+               "iterations": (int, 5, "CEM iterations per control step"),
+               "running_weight": (float, 0.5, "weight of the intermediate states' error in the cost")}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,7 +18,8 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from diffdlo.envs.shape_control import BatchedShapeControl
+from diffdlo import task
+from diffdlo.envs import BatchedShapeControl
 from diffdlo.params import ParamsError, load_params
 from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
 
@@ -29,9 +30,10 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     """One episode of receding-horizon control. Returns the episode record plus its frames (T+1, N, 2)."""
     env.reset(seed=seed)
     planner.reset()
-    target = env.target[0].clone()
-    frames = [env.pos[0].clone()]
-    errors = [float(env.info()["shape_error"][0])]
+    state = env.get_state()
+    target, target_name = state.target[0], state.target_names[0]
+    frames = [state.pos[0]]
+    errors = [float(state.info["shape_error"][0])]
     grad0 = getattr(planner, "grad_evals", 0)
     if hasattr(planner, "grad_norms"):
         planner.grad_norms = []
@@ -39,11 +41,11 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     bar = tqdm(total=env.max_steps, desc=desc, disable=not progress, leave=True, dynamic_ncols=True)
     while not success:
         t0 = time.perf_counter()
-        action = planner.plan(env.pos[0].clone(), target)
+        action = planner.plan(frames[-1].clone(), target)
         plan_s += time.perf_counter() - t0
         _, _, term, trunc, info = env.step(action.detach().reshape(1, -1).to(torch.float64))
         steps += 1
-        frames.append(env.pos[0].clone())
+        frames.append(env.get_state().pos[0])
         errors.append(float(info["shape_error"][0]))
         success = bool(info["is_success"][0])
         bar.update(1)
@@ -56,7 +58,8 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         stats["grad_evals"] -= grad0
     return {**stats, "success": success, "steps": steps, "final_error": errors[-1], "start_error": errors[0],
             "errors": errors, "sim_evals": planner.sim_evals - evals0, "plan_s": plan_s,
-            "plan_s_per_step": plan_s / max(steps, 1), "seed": seed, "frames": torch.stack(frames),
+            "plan_s_per_step": plan_s / max(steps, 1), "seed": seed, "target_name": target_name,
+            "frames": torch.stack(frames),
             "target_points": target}
 
 
@@ -77,7 +80,9 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
     parser.add_argument("--success-tol", type=float, default=None, help="success threshold [m] (default params: 0.01)")
     parser.add_argument("--no-gif", action="store_true", help="skip the GIFs")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
-    planner_cls.add_args(parser)
+    group = parser.add_argument_group(planner_cls.name)
+    for key, (kind, default, text) in planner_cls.OPTIONS.items():
+        group.add_argument(f"--{key.replace('_', '-')}", type=kind, default=default, help=f"{text} (default {default})")
     return parser
 
 
@@ -95,18 +100,16 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
                                   params=p, device=args.device)
     except (ValueError, RuntimeError) as exc:
         parser.error(str(exc))
-    if args.target in TARGET_FAMILIES:
-        target = None                                       # drawn by every env.reset(seed=SEED + i)
-        env.target_spec = args.target
-    else:
-        try:
-            target = env.sim.target_shape(args.target)
-        except TargetError as exc:
-            print(f"error: bad --target {args.target!r}: {exc}", file=sys.stderr)
-            return 2
-        env.target_spec = target
-    planner = planner_cls.from_args(env.sim, args)
-    label = args.target if args.target in TARGET_NAMES or args.target in TARGET_FAMILIES else Path(args.target).stem
+    try:
+        target = task.resolve_target(args.target, p, env.device, env.dtype)
+    except TargetError as exc:
+        print(f"error: bad --target {args.target!r}: {exc}", file=sys.stderr)
+        return 2
+    env.set_target(target)
+    if isinstance(target, str):
+        target = None                                       # a family: drawn by every env.reset(seed=SEED + i)
+    planner = planner_cls(env.sim, seed=args.seed, **{k: getattr(args, k) for k in planner_cls.OPTIONS})
+    label = task.target_label(args.target)
     out = Path(args.out or f"runs/{name}-{label}")
     out.mkdir(parents=True, exist_ok=True)
 

@@ -14,12 +14,13 @@ raises FloatingPointError (never silently zeroed).
 """
 from __future__ import annotations
 
-import argparse
 import math
 
 import torch
 
-from .objective import SimObjective, encode_node_actions
+from diffdlo.task import encode_node_action, greedy_drags
+
+from .objective import SimObjective
 
 
 class GradientPlanner:
@@ -46,10 +47,7 @@ class GradientPlanner:
     def _init_u(self, pos: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         s = self.p.action_scale
         nodes = torch.tensor(self.nodes, dtype=torch.int64)
-        aligned = target - target.mean(0) + pos.mean(0)
-        gap = (aligned - pos)[nodes]                                             # (K, 2)
-        gap = gap * (self.p.max_disp / gap.norm(dim=-1, keepdim=True).clamp_min(1e-12)).clamp(max=1.0)
-        inits = [gap / s]
+        inits = [greedy_drags(pos, target, self.p.max_disp)[0][nodes] / s]     # the greedy move of each node
         for _ in range(self.restarts - 1):
             inits.append(torch.rand(len(nodes), 2, generator=self.gen, dtype=pos.dtype) * 2 - 1)
         d = torch.cat(inits).clamp(-0.9, 0.9)
@@ -95,19 +93,12 @@ class GradientPlanner:
         node, u = self._init_u(obj.start, obj.target)
         n, d, _ = self.optimize(obj, node, u)
         self.sim_evals += obj.sim_evals
-        return encode_node_actions(n, d, self.p)
+        return encode_node_action(n, d, self.p.n_nodes, self.p.action_scale)
 
-    @staticmethod
-    def add_args(parser: argparse.ArgumentParser) -> None:
-        g = parser.add_argument_group("gradient planner")
-        g.add_argument("--iters", type=int, default=12, help="Adam iterations per control step (default 12)")
-        g.add_argument("--restarts", type=int, default=2, help="initial drags per node (default 2)")
-        g.add_argument("--lr", type=float, default=0.3, help="Adam learning rate on u, d = s tanh(u) (default 0.3)")
-        g.add_argument("--halvings", type=int, default=2, help="successive halvings of the rows (default 2)")
-
-    @classmethod
-    def from_args(cls, sim, args) -> "GradientPlanner":
-        return cls(sim, iters=args.iters, restarts=args.restarts, lr=args.lr, halvings=args.halvings, seed=args.seed)
+    # the command line's options (planners/common.py): constructor argument -> (type, default, help)
+    OPTIONS = {"iters": (int, 12, "Adam iterations per control step"), "restarts": (int, 2, "initial drags per node"),
+               "lr": (float, 0.3, "Adam learning rate on u, d = s tanh(u)"),
+               "halvings": (int, 2, "successive halvings of the rows")}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,17 +5,15 @@ place (at most max_disp = 0.1 m). No simulation: sim_evals = 0.
 """
 from __future__ import annotations
 
-import argparse
-
 import torch
 
-from .objective import encode_node_actions
+from diffdlo.task import encode_node_action, greedy_drags
 
 
 class GreedyPlanner:
     name = "greedy"
 
-    def __init__(self, sim):
+    def __init__(self, sim, seed: int = 0):       # deterministic: the seed changes nothing
         self.sim, self.p = sim, sim.params
         self.sim_evals = 0
 
@@ -23,20 +21,11 @@ class GreedyPlanner:
         pass
 
     def plan(self, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        aligned = target - target.mean(0) + pos.mean(0)
-        gap = aligned - pos                                           # (N, 2)
-        dist = gap.norm(dim=-1)
+        drags, dist = greedy_drags(pos, target, self.p.max_disp)
         node = dist.argmax()
-        scale = (self.p.max_disp / dist[node].clamp_min(1e-12)).clamp(max=1.0)
-        return encode_node_actions(node, gap[node] * scale, self.p)
+        return encode_node_action(node, drags[node], self.p.n_nodes, self.p.action_scale)
 
-    @staticmethod
-    def add_args(parser: argparse.ArgumentParser) -> None:
-        pass
-
-    @classmethod
-    def from_args(cls, sim, args) -> "GreedyPlanner":
-        return cls(sim)
+    OPTIONS: dict = {}            # nothing to set on the command line
 
 
 def main(argv: list[str] | None = None) -> int:

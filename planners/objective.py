@@ -3,8 +3,8 @@
 ``SimObjective(sim, start, target)(actions (B, H, 3)) -> (B,)`` rolls the B sequences out with ONE batched
 ``Simulator.move`` per horizon step and returns the ``shape_error`` [m] (centroid-aligned mean node distance, the
 metric that defines success in the env) after the last move. Actions are the env's node actions in [0, 1]^3, clipped
-to [0, 1] and decoded exactly like ``BatchedShapeControl.decode`` (node = round(a0 (N-1)), d = a 2 s - s), so a plan
-can be executed in the env as is. Planners only need ``objective(actions) -> costs``: the CEM optimizer is generic
+to [0, 1] and decoded by the env's own rule (``diffdlo.task.decode_node_action``, eq 2.6), so a plan can be executed
+in the env as is. Planners only need ``objective(actions) -> costs``: the CEM optimizer is generic
 and can later be given a learned latent model's objective instead (PlaNet).
 
 Why shape_error and not the env's default reward (eq 2.9-2.11, pairwise distances + end-to-end angle): the task's
@@ -19,25 +19,9 @@ from typing import Callable
 
 import torch
 
-from diffdlo.params import CableParams
 from diffdlo.rewards import shape_error
+from diffdlo.task import decode_node_action
 from diffdlo.simulator import Simulator
-
-
-def decode_node_actions(actions: torch.Tensor, p: CableParams) -> tuple[torch.Tensor, torch.Tensor]:
-    """(..., 3) node actions -> node (...,) int64, drag (..., 2) [m]; the env's decoding (eq 2.6), after clipping
-    to [0, 1]. Differentiable with respect to the drag part."""
-    a = actions.clamp(0.0, 1.0)
-    s = p.action_scale
-    node = torch.round(a[..., 0].detach() * (p.n_nodes - 1)).to(torch.int64)
-    return node, a[..., 1:] * (2 * s) - s
-
-
-def encode_node_actions(node: torch.Tensor, delta: torch.Tensor, p: CableParams) -> torch.Tensor:
-    """Inverse of decode_node_actions: node (...,) and drag (..., 2) [m] -> (..., 3) node actions in [0, 1]."""
-    s = p.action_scale
-    a0 = node.to(delta.dtype) / (p.n_nodes - 1)
-    return torch.cat([a0.unsqueeze(-1), ((delta + s) / (2 * s)).clamp(0.0, 1.0)], dim=-1)
 
 
 def sequence_cost(states: list[torch.Tensor], target: torch.Tensor, running_weight: float = 0.0) -> torch.Tensor:
@@ -81,7 +65,7 @@ class SimObjective:
     def __call__(self, actions: torch.Tensor) -> torch.Tensor:
         if actions.ndim != 3 or actions.shape[-1] != 3:
             raise ValueError(f"actions must have shape (B, H, 3), got {tuple(actions.shape)}")
-        node, delta = decode_node_actions(actions.to(device=self.sim.device, dtype=self.sim.dtype), self.p)
+        node, delta = decode_node_action(actions.to(device=self.sim.device, dtype=self.sim.dtype), self.p)
         return self.rollout_deltas(node, delta)
 
 

@@ -8,7 +8,11 @@ import torch
 
 import diffdlo
 from agents import ppo, sac
-from agents.common import CHECKPOINT, evaluate, load_config, make_env, read_csv
+from agents.checkpoints import CHECKPOINT
+from agents.config import load_config
+from agents.envs import make_env
+from agents.evaluation import evaluate
+from agents.logs import read_csv
 
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
@@ -51,17 +55,18 @@ def test_a_killed_run_resumes_exactly_with_its_normalizer_and_lr_schedule(algo, 
         return [("anneal_lr=true" if x == "anneal_lr=false" else x) for x in argv(algo, out, 384)]
 
     assert m.main(args(a)) == 0
-    real_save = m.save_checkpoint
+    from agents import run as run_module
+    real_save = run_module.save_checkpoint
 
     def save_then_die(path, state):
         real_save(path, state)
         if state["step"] >= 256:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(m, "save_checkpoint", save_then_die)
+    monkeypatch.setattr(run_module, "save_checkpoint", save_then_die)
     with pytest.raises(KeyboardInterrupt):
         m.main(args(b))
-    monkeypatch.setattr(m, "save_checkpoint", real_save)
+    monkeypatch.setattr(run_module, "save_checkpoint", real_save)
     ck = torch.load(b / CHECKPOINT, weights_only=False)
     assert ck["step"] == 256
     norm = ck["agent" if algo == "ppo" else "actor"]
@@ -91,7 +96,7 @@ def test_learns_one_move_task_better_than_random(algo, tmp_path):
     else:
         cfg = load_config(ppo.PPOConfig, "ppo", dict(common, total_steps=3072, eval_every=1024, n_steps=32,
                                                      batch_size=64, n_epochs=4, lr=1e-3))
-    env = make_env(cfg, 32)
+    env = make_env(cfg.task, cfg.run, cfg.task.cable_params(), 32)
     g = torch.Generator().manual_seed(0)
     random_res = evaluate(lambda o, d: torch.rand(32, 3, generator=g), env, 64, seed=123)
     assert random_res["success_rate"] < 0.3                       # measured 0.16: the task is not trivially solved
@@ -117,7 +122,8 @@ def test_cli_smoke_writes_everything_and_resumes(algo, obs, action, tmp_path, ca
     res = json.loads((tmp_path / "results.json").read_text())
     assert {"method", "target", "seed", "success_rate", "episodes", "env_steps", "wall_s"} <= set(res)
     assert res["method"] == algo and res["env_steps"] == 256 and len(res["episodes"]) == 8
-    assert set(res["episodes"][0]) == {"success", "steps", "final_error"}
+    assert set(res["episodes"][0]) == {"success", "steps", "final_error", "target_name"}
+    assert {e["target_name"] for e in res["episodes"]} <= set(diffdlo.TARGET_NAMES)   # what the env drew
     assert m.main(["--out", str(tmp_path), "--resume", "--total-steps", "384", "--no-progress"]) == 0
     assert json.loads((tmp_path / "results.json").read_text())["env_steps"] == 384
     assert "success rate" in capsys.readouterr().out
@@ -162,7 +168,7 @@ def test_tensorboard_logging_when_installed(tmp_path):
 def test_evaluate_returns_each_episodes_own_final_rope_and_target():
     """Regression: targets were views of the env's target tensor, overwritten in place by the next wave's reset."""
     import diffdlo
-    from agents.common import evaluate
+    from agents.evaluation import evaluate
     from diffdlo.envs import BatchedShapeControl
 
     p = dataclasses.replace(diffdlo.load_params(), n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30,
@@ -176,7 +182,7 @@ def test_evaluate_returns_each_episodes_own_final_rope_and_target():
 
 
 def test_large_replay_buffer_warning(capsys):
-    from agents.common import warn_if_large_buffer
+    from agents.checkpoints import warn_if_large_buffer
     obs = {"image": torch.zeros(4, 64, 64, 3, dtype=torch.uint8)}
     warn_if_large_buffer(1000, 4, obs)                       # 49 MB: silent
     assert capsys.readouterr().err == ""

@@ -1,5 +1,5 @@
-"""The comparison harness (benchmarks/compare.py): confidence intervals, a CI-sized quick run, its report, resume,
-and the optional Ray path."""
+"""The comparison harness (the package benchmarks/compare/): confidence intervals, a CI-sized quick run, its report,
+resume, the per-episode targets of a planner's random cell, and the optional Ray path."""
 import json
 import math
 import re
@@ -54,6 +54,34 @@ def test_t_quantile_and_intervals_match_hand_computed():
     p, lo, hi = compare.wilson(8, 10)
     assert (p, lo, hi) == pytest.approx((0.8, 0.490162, 0.943318), abs=1e-5)
     assert compare.wilson(0, 10)[1] == 0.0 and compare.wilson(0, 10)[2] == pytest.approx(0.277533, abs=1e-5)
+
+
+def test_random_target_names_are_what_the_env_draws_per_reset_seed():
+    from diffdlo.envs import BatchedShapeControl
+
+    env = BatchedShapeControl(1, target="random")
+    one_by_one = []
+    for i in range(8):
+        env.reset(seed=10000 + i)
+        one_by_one.append(env.get_state().target_names[0])
+    assert compare.random_target_names(10000, 8) == one_by_one
+    assert set(one_by_one) <= set(compare.NAMED) and len(set(one_by_one)) > 1
+
+
+def test_merged_random_cell_takes_each_episodes_target_from_its_run():
+    def part(name, success, **episode):
+        return {"method": "greedy", "target": name, "env_steps": 3, "wall_s": 1.0, "sim_evals": 0, "config": {},
+                "episodes": [{"success": success, "steps": 3, "plan_s": 0.5, **episode}]}
+
+    cell = {"dir": "d", "eval_seed": 10000, "subrun_targets": ["vertical", "diagonal"]}
+    # the first run's results predate "target_name": its --target ("target") stands for the episode's
+    parts = [part("vertical", True), part("diagonal", False, target_name="diagonal")]
+    merged = compare.merge_subruns(parts, cell)
+    assert merged["episode_targets"] == ["vertical", "diagonal"] and merged["target"] == "random"
+    assert merged["success_rate"] == 0.5 and merged["env_steps"] == 6 and merged["seed"] == 10000
+    assert merged["plan_s_per_step"] == pytest.approx(1.0 / 6) and "config" not in merged
+    with pytest.raises(RuntimeError, match="the env drew"):          # a run on another target than drawn
+        compare.merge_subruns([part("vertical", True), part("diagonal", False, target_name="horizontal")], cell)
 
 
 def test_grid_is_data_and_filters_work(tmp_path):
@@ -115,6 +143,9 @@ def test_quick_run_writes_a_well_formed_table(quick):
     assert float(tables["diagonal"][1]["sim evals / episode"]) > 0          # CEM simulates
     merged = json.loads((root / "cells/greedy/default/random/seed0/results.json").read_text())
     assert len(merged["episodes"]) == 2 and set(merged["episode_targets"]) <= set(compare.NAMED)
+    # each episode ran on the target the env draws for its reset seed, as its own run reports it
+    assert merged["episode_targets"] == [e["target_name"] for e in merged["episodes"]] \
+        == compare.random_target_names(10000, 2)
     figs = sorted(p.name for p in (root / "fig").glob("*.png"))
     assert "quick_curves_sac_diagonal.png" in figs and "quick_gallery_diagonal.png" in figs
     assert "quick_planner_error_vs_evals_diagonal.png" in figs and "quick_success_vs_steps_diagonal.png" in figs

@@ -7,12 +7,14 @@ import pytest
 import torch
 
 from agents import planet
-from agents.common import CHECKPOINT, load_config, read_csv
+from agents.checkpoints import CHECKPOINT
+from agents.config import load_config
+from agents.logs import read_csv
 from agents.dynamics import EnsembleDynamics, ModelObjective, k_step_errors
 from diffdlo.params import load_params
 from diffdlo.rewards import shape_error
 from diffdlo.simulator import Simulator
-from planners.objective import encode_node_actions
+from diffdlo.task import encode_node_action
 
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"
@@ -72,7 +74,7 @@ def test_members_are_independent_networks_and_the_ensemble_learns():
     pos, node, drag = random_ropes(p, 64, seed=1)
     pos, drag = pos.float(), drag.float()
     nxt = sim.move(pos, node, drag)
-    action = encode_node_actions(node, drag, p)
+    action = encode_node_action(node, drag, p.n_nodes, p.action_scale)
     model = EnsembleDynamics(p, members=2, hidden=[64, 64], augment=[])
     out = model(pos, node, drag)
     assert out.shape == (2, 64, 6, 2) and not torch.allclose(out[0], out[1])
@@ -106,11 +108,11 @@ def test_k_step_errors_on_a_hand_checked_case():
     sim = Simulator(p)
     pos, node, drag = random_ropes(p, 5, seed=2)
     pos, drag = pos.float(), drag.float()
-    a = encode_node_actions(node, drag, p)
+    a = encode_node_action(node, drag, p.n_nodes, p.action_scale)
     one = sim.move(pos, node, drag)
     two = sim.move(one, node, -drag)
     true = torch.stack([one, two], 1)
-    acts = torch.stack([a, encode_node_actions(node, -drag, p)], 1)
+    acts = torch.stack([a, encode_node_action(node, -drag, p.n_nodes, p.action_scale)], 1)
     r = k_step_errors(zero_model(p), pos, acts, true, (1, 2))
     assert r["pred_err_1"] == pytest.approx(r["base_err_1"]) and r["pred_err_2"] == pytest.approx(r["base_err_2"])
     assert r["base_err_1"] == pytest.approx(float((one - pos).norm(dim=-1).mean()), rel=1e-5)
@@ -167,11 +169,11 @@ def test_heldout_targets_are_evaluated_after_training(tmp_path):
 
 def test_ensemble_needs_points_and_node_actions(tmp_path):
     with pytest.raises(ValueError, match="needs obs 'points'"):
-        planet.check_planet_config(load_config(planet.PlaNetConfig, "planet", {"obs": "image"}))
+        load_config(planet.PlaNetConfig, "planet", {"obs": "image"})
     with pytest.raises(ValueError, match="augment"):
-        planet.check_planet_config(load_config(planet.PlaNetConfig, "planet", {"augment": ["shear"]}))
+        load_config(planet.PlaNetConfig, "planet", {"augment": ["shear"]})
     with pytest.raises(ValueError, match="propagation"):
-        planet.check_planet_config(load_config(planet.PlaNetConfig, "planet", {"propagation": "ts9"}))
+        load_config(planet.PlaNetConfig, "planet", {"propagation": "ts9"})
 
 
 def test_tiny_task_is_solved_by_planning_through_the_learned_model(tmp_path):

@@ -167,7 +167,7 @@ def test_image_observations_change_when_the_rope_moves(small):
     img = single.reset(seed=2)[0]["image"]
     assert (img != 255).any(-1).sum() > 20
     core = single.unwrapped.core                                 # cached target layer == a fresh render
-    np.testing.assert_array_equal(img, core.render_images(core.pos, core.target)[0].numpy())
+    np.testing.assert_array_equal(img, core.render_images(core.get_state().pos, core.get_state().target)[0].numpy())
 
 
 def test_render_rgb_array(small):
@@ -282,9 +282,9 @@ def test_torch_native_interface(small):
         assert torch.is_tensor(t) and t.device == core.sim.device and t.shape == (4,)
     assert terminated.dtype == torch.bool and torch.isfinite(obs["node_poses"]).all()
     # partial step: masked-out envs keep their state and get reward 0
-    before = core.pos.clone()
+    before = core.get_state().pos.clone()
     _, reward, *_ = core.step(actions, mask=[True, False, True, False])
-    assert torch.equal(core.pos[1], before[1]) and reward[1] == 0 and not torch.equal(core.pos[0], before[0])
+    assert torch.equal(core.get_state().pos[1], before[1]) and reward[1] == 0 and not torch.equal(core.get_state().pos[0], before[0])
     # sub-env i of a batch seeded s is a single env seeded s + i
     single = BatchedShapeControl(num_envs=1, params=small)
     one, _ = single.reset(seed=2)

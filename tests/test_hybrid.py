@@ -1,6 +1,5 @@
 """The tuned learners' pieces on hand-computed cases: the hybrid (node, drag) action, the running normalizer, and the
 update rules of SAC and PPO (target-network averaging, temperature step, the expectation over nodes, clipping)."""
-import dataclasses
 import math
 
 import numpy as np
@@ -8,8 +7,8 @@ import pytest
 import torch
 
 import diffdlo
-from agents import hybrid, ppo, sac
-from agents.common import load_config, preset_path
+from agents import config, hybrid, ppo, sac
+from agents.config import load_config, preset_path
 from diffdlo.envs import BatchedShapeControl
 
 
@@ -159,11 +158,12 @@ def test_ppo_hybrid_distribution_log_prob_entropy_and_mode():
 @pytest.mark.parametrize("algo,cls", [("ppo", ppo.PPOConfig), ("sac", sac.SACConfig)])
 def test_presets_tuned_is_the_default_and_sb3_default_keeps_the_old_settings(algo, cls):
     tuned = load_config(cls, preset_path(algo, None))
-    assert (tuned.policy, tuned.features, tuned.on_exit, tuned.reward) == ("hybrid", "relative", "fail", "shape_gain")
+    assert (tuned.policy, tuned.inputs.features, tuned.task.on_exit, tuned.task.reward) == (
+        "hybrid", "relative", "fail", "shape_gain")
     old = load_config(cls, preset_path(algo, "sb3-default"))
-    assert (old.policy, old.features, old.on_exit, old.reward) == ("gaussian", "raw", "truncate",
-                                                                  "position_orientation")
-    assert old.num_envs == 16 and old.gamma == 0.99 and old.success_bonus is None
+    assert (old.policy, old.inputs.features, old.task.on_exit, old.task.reward) == (
+        "gaussian", "raw", "truncate", "position_orientation")
+    assert old.run.num_envs == 16 and old.gamma == 0.99 and old.task.success_bonus is None
     with pytest.raises(ValueError, match="unknown preset 'fast'.*sb3-default"):
         preset_path(algo, "fast")
 
@@ -180,4 +180,4 @@ def test_bad_tuned_config_values_are_named(bad, message):
 
 def test_tiny_config_dataclass_roundtrip():
     cfg = load_config(sac.SACConfig, "sac")
-    assert sac.SACConfig(**dataclasses.asdict(cfg)) == cfg
+    assert config.from_flat(sac.SACConfig, config.to_dict(cfg)) == cfg

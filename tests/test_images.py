@@ -6,7 +6,9 @@ import pytest
 import torch
 
 from agents import ppo, sac
-from agents.common import CHECKPOINT, KeypointCNN, load_config, random_shift, shift_images
+from agents.checkpoints import CHECKPOINT
+from agents.config import load_config
+from agents.networks import KeypointCNN, random_shift, shift_images
 from diffdlo import image as rimage
 from diffdlo.envs.shape_control import BatchedShapeControl
 
@@ -16,7 +18,7 @@ from tests.test_agents import argv
 def straight_and_reversed(env):
     """The env's first rope laid exactly on its straight target, and the same rope the other way round."""
     env.reset(seed=0)
-    target = env.target[0]
+    target = env.get_state().target[0]
     env.set_state(pos=torch.stack([target, target.flip(0)]))
     return env.observe()
 
@@ -123,8 +125,8 @@ def test_image_sac_trains_its_critics_encoder(tmp_path):
 
 def test_image_preset_loads_and_says_why():
     cfg = load_config(ppo.PPOConfig, "params/ppo-image.yaml")
-    assert (cfg.obs, cfg.policy, cfg.encoder, cfg.mark_end) == ("image", "hybrid", "keypoints", True)
-    assert cfg.augment_shift > 0
+    assert (cfg.task.obs, cfg.policy, cfg.inputs.encoder, cfg.task.mark_end) == ("image", "hybrid", "keypoints", True)
+    assert cfg.inputs.augment_shift > 0
 
 
 @pytest.mark.parametrize("key,value,message", [("encoder", "resnet", "unknown encoder 'resnet'"),

@@ -1,15 +1,17 @@
 """agents.planet / agents.rssm: RSSM shapes and ELBO terms, free nats, chunk sampling, overfitting, latent CEM,
 open-loop evaluation, CLI smoke runs (points and images) with resume."""
-import dataclasses
 import json
 
 import pytest
 import torch
 
 import diffdlo
-from agents import planet
+from agents import openloop, planet
 from agents.buffer import ReplayBuffer
-from agents.common import CHECKPOINT, load_config, make_env, read_csv
+from agents.checkpoints import CHECKPOINT
+from agents.config import load_config
+from agents.envs import make_env
+from agents.logs import read_csv
 from agents.rssm import RSSM, free_nats_kl, gauss_kl
 from planners.cem import CEM
 
@@ -28,12 +30,12 @@ def tiny_cfg(**kw):
 
 
 def collect(cfg, rows, seed=0):
-    env = make_env(cfg, cfg.num_envs)
+    env = make_env(cfg.task, cfg.run, cfg.task.cable_params(), cfg.run.num_envs)
     obs = env.reset(seed=seed)
-    rb = ReplayBuffer(rows, cfg.num_envs, obs, env.core.action_dim)
+    rb = ReplayBuffer(rows, cfg.run.num_envs, obs, env.core.action_dim)
     g = torch.Generator().manual_seed(seed)
     for _ in range(rows):
-        a = torch.rand(cfg.num_envs, env.core.action_dim, generator=g)
+        a = torch.rand(cfg.run.num_envs, env.core.action_dim, generator=g)
         nxt, r, te, tr, _, fo = env.step(a)
         rb.add(obs, a, r, te, tr, final_obs=fo)
         obs = nxt
@@ -46,7 +48,7 @@ def test_rssm_shapes_and_loss_terms(obs_type, action):
                    deconv_channels=[8, 4])
     rb, obs = collect(cfg, 12)
     a_dim = 3 if action == "node" else 4
-    m = planet.build_model(cfg, obs, a_dim)
+    m = planet.build_model(cfg, obs, a_dim, cfg.task.cable_params())
     o, a, r, mask = planet.sample_sequences(rb, 5, 4)
     first = next(iter(o.values())) if isinstance(o, dict) else o
     assert first.shape[:2] == (5, 5) and a.shape == (5, 4, a_dim) and r.shape == (5, 4) and mask.shape == (5, 5)
@@ -81,7 +83,7 @@ def test_free_nats_clamp_constant_and_no_gradient():
     # inside the model: a huge free_nats makes the KL term a constant with no gradient to any parameter
     cfg = tiny_cfg(free_nats=1e6)
     rb, obs = collect(cfg, 10)
-    m = planet.build_model(cfg, obs, 3)
+    m = planet.build_model(cfg, obs, 3, cfg.task.cable_params())
     L = m.loss(*planet.sample_sequences(rb, 4, 4))
     assert float(L["kl_loss"].detach()) == 1e6 and float(L["kl"].detach()) < 1e6
     grads = torch.autograd.grad(L["kl_loss"], list(m.parameters()), allow_unused=True)
@@ -120,7 +122,7 @@ def test_tiny_model_overfits_a_fixed_sequence():
     cfg = tiny_cfg(obs_std=0.1, deter=32, stoch=8, hidden=64, embed=32)
     rb, obs = collect(cfg, 12)
     batch = planet.sample_sequences(rb, 4, 6, torch.Generator().manual_seed(1))
-    m = planet.build_model(cfg, obs, 3)
+    m = planet.build_model(cfg, obs, 3, cfg.task.cable_params())
     opt = torch.optim.Adam(m.parameters(), lr=3e-3, eps=1e-4)
     losses = []
     for _ in range(300):
@@ -137,9 +139,9 @@ def test_latent_cem_improves_a_known_objective():
     leads to. The best cost must fall far below the cost of random sequences."""
     torch.manual_seed(0)
     cfg = tiny_cfg()
-    env = make_env(cfg, 1)
+    env = make_env(cfg.task, cfg.run, cfg.task.cable_params(), 1)
     obs = env.reset(seed=0)
-    m = planet.build_model(cfg, obs, 3)
+    m = planet.build_model(cfg, obs, 3, cfg.task.cable_params())
     with torch.no_grad():
         st, _ = m.obs_step(None, None, m.embed(obs), sample=False)
         secret = torch.tensor([[[0.4, 0.9, 0.2], [1.0, 0.1, 0.7]]])
@@ -160,9 +162,9 @@ def test_latent_cem_improves_a_known_objective():
     assert obj(torch.rand(7, 2, 3)).shape == (7,)
     for action in ("node", "pixel"):
         c2 = tiny_cfg(action=action, horizon=2, candidates=16, elites=4, iterations=2)
-        e2 = make_env(c2, 3)
+        e2 = make_env(c2.task, c2.run, c2.task.cable_params(), 3)
         o2 = e2.reset(seed=1)
-        m2 = planet.build_model(c2, o2, e2.core.action_dim)
+        m2 = planet.build_model(c2, o2, e2.core.action_dim, c2.task.cable_params())
         pl = planet.LatentPlanner(m2, c2, e2.core, 0)
         for _ in range(2):
             a = pl(o2, deterministic=False)
@@ -172,9 +174,9 @@ def test_latent_cem_improves_a_known_objective():
 
 def test_open_loop_eval_reports_model_and_baseline():
     cfg = tiny_cfg(openloop_episodes=6, openloop_context=2)
-    env = make_env(cfg, 1)
-    m = planet.build_model(cfg, env.reset(seed=0), 3)
-    res = planet.open_loop_eval(m, cfg, horizons=(2, 4))
+    env = make_env(cfg.task, cfg.run, cfg.task.cable_params(), 1)
+    m = planet.build_model(cfg, env.reset(seed=0), 3, cfg.task.cable_params())
+    res = openloop.open_loop_eval(m, cfg, horizons=(2, 4))
     for k in ("pred_err_2", "base_err_2", "pred_err_4", "base_err_4"):
         assert res[k] >= 0 and res[k] == res[k]
     assert res["pred"].shape == res["true"].shape == (6, 4, 6, 2)

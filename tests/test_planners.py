@@ -9,7 +9,8 @@ import torch
 
 import diffdlo
 from diffdlo.envs.shape_control import BatchedShapeControl
-from planners import SimObjective, decode_node_actions, encode_node_actions
+from diffdlo.task import decode_node_action, encode_node_action
+from planners import SimObjective
 from planners import cem as cem_mod, gradient as grad_mod, greedy as greedy_mod
 from planners.cem import CEM, CEMPlanner
 from planners.gradient import GradientPlanner
@@ -24,7 +25,7 @@ def _start(env_b=1, seed=0, target="diagonal", dtype=torch.float32):
 
 def test_objective_matches_env_steps():
     env = _start(3, seed=2)
-    start, target = env.pos[0].clone(), env.target[0].clone()
+    start, target = env.get_state().pos[0].clone(), env.get_state().target[0].clone()
     actions = torch.rand(3, 2, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     actions[0, 0, 1] = 1.3                                        # clipped like the env clips
     obj = SimObjective(env.sim, start, target)
@@ -33,7 +34,7 @@ def test_objective_matches_env_steps():
     env.set_state(pos=start.expand(3, -1, -1), target=target, steps=0)
     for t in range(2):
         node_env, delta_env = env.decode(actions[:, t].clamp(0, 1).to(env.dtype))
-        node, delta = decode_node_actions(actions[:, t], env.params)
+        node, delta = decode_node_action(actions[:, t], env.params)
         assert torch.equal(node, node_env) and torch.allclose(delta.float(), delta_env)
         _, _, _, _, info = env.step(actions[:, t])
     torch.testing.assert_close(cost, info["shape_error"].to(cost.dtype), rtol=0, atol=1e-7)
@@ -42,7 +43,7 @@ def test_objective_matches_env_steps():
 def test_encode_decode_roundtrip(params):
     node = torch.tensor([0, 7, 19])
     delta = torch.tensor([[0.1, -0.1], [0.03, 0.0], [-0.05, 0.07]], dtype=torch.float64)
-    n, d = decode_node_actions(encode_node_actions(node, delta, params), params)
+    n, d = decode_node_action(encode_node_action(node, delta, params.n_nodes, params.action_scale), params)
     assert torch.equal(n, node) and torch.allclose(d, delta)
 
 
@@ -102,7 +103,7 @@ def test_optimize_together_equals_each_cem_alone():
 
 def test_cem_improves_on_fixed_problem():
     env = _start(1, seed=3)
-    obj = SimObjective(env.sim, env.pos[0], env.target[0])
+    obj = SimObjective(env.sim, env.get_state().pos[0], env.get_state().target[0])
     cem = CEM(3, 1, candidates=48, elites=8, iterations=4, discrete={0: env.params.n_nodes},
               generator=torch.Generator().manual_seed(0))
     best, cost = cem.optimize(obj)
@@ -110,14 +111,14 @@ def test_cem_improves_on_fixed_problem():
     assert h[-1]["elite_mean"] < h[0]["elite_mean"] and h[-1]["best"] <= h[0]["best"]
     assert obj.sim_evals == 48 + 3 * (48 - 8)                     # elites are kept, not re-simulated
     assert abs(float(obj(best[None])) - cost) < 1e-6              # the returned cost is the plan's cost
-    assert cost < float(diffdlo.shape_error(env.pos, env.target))
+    assert cost < float(diffdlo.shape_error(env.get_state().pos, env.get_state().target))
     cem.shift()                                                   # warm start keeps shapes
     assert cem.best.shape == (1, 3) and cem.mean.shape[0] == 1
 
 
 def test_gradient_matches_finite_differences():
     env = _start(1, seed=4, dtype=torch.float64)
-    obj = SimObjective(env.sim, env.pos[0], env.target[0])
+    obj = SimObjective(env.sim, env.get_state().pos[0], env.get_state().target[0])
     s = env.params.action_scale
     node = torch.tensor([[0], [9], [19]])
     u = torch.tensor([[0.3, -0.5], [-0.2, 0.4], [0.8, 0.1]], dtype=torch.float64, requires_grad=True)
@@ -140,7 +141,7 @@ def test_gradient_planner_improves_and_reports_norms():
     env = _start(1, seed=3)
     planner = GradientPlanner(env.sim, iters=4, restarts=1, halvings=1)
     err0 = float(env.info()["shape_error"][0])
-    a = planner.plan(env.pos[0], env.target[0])
+    a = planner.plan(env.get_state().pos[0], env.get_state().target[0])
     assert a.shape == (3,) and bool(((a >= 0) & (a <= 1)).all())
     assert planner.last["cost"] < err0 and planner.grad_norms and all(np.isfinite(planner.grad_norms))
     assert planner.sim_evals == 20 * 2 + 10 * 2                    # 20 nodes, halved once after 2 iterations
@@ -153,7 +154,7 @@ def test_greedy_reduces_error_on_easy_start():
     planner = GreedyPlanner(env.sim)
     err = [float(env.info()["shape_error"][0])]
     for _ in range(5):
-        _, _, _, _, info = env.step(planner.plan(env.pos[0], env.target[0]).reshape(1, 3).double())
+        _, _, _, _, info = env.step(planner.plan(env.get_state().pos[0], env.get_state().target[0]).reshape(1, 3).double())
         err.append(float(info["shape_error"][0]))
     assert err[-1] < 0.5 * err[0] and planner.sim_evals == 0
 
@@ -215,7 +216,7 @@ def test_cli_family_target_draws_each_episodes_target_from_its_reset(family, tmp
     for i, got in enumerate(recorded):
         assert r["episodes"][i]["seed"] == 3 + i
         env.reset(seed=3 + i)
-        assert torch.equal(got, env.target[0].double())
+        assert torch.equal(got, env.get_state().target[0].double())
     if family == "random_curve":
         assert (recorded[0] - recorded[1]).abs().max() > 1e-3
     assert (out / "shapes.png").stat().st_size > 0

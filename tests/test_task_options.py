@@ -76,7 +76,7 @@ def test_random_curve_seeding(params):
 
 # ------------------------------------------------------------------------------------- env target="random_curve"
 def _targets(env):
-    return env.target.detach().clone()
+    return env.get_state().target.detach().clone()
 
 
 def test_env_random_curve_targets_follow_the_seed(small):
@@ -94,7 +94,7 @@ def test_env_random_curve_targets_follow_the_seed(small):
     for i in range(3):                                        # sub-env i of seed 5 == a single env of seed 5 + i
         single = BatchedShapeControl(1, target="random_curve", params=small, dtype=torch.float64)
         single.reset(seed=5 + i)
-        assert torch.equal(single.target[0], t5[i])
+        assert torch.equal(single.get_state().target[0], t5[i])
         gym_env = gym.make(ENV_ID, params=small, target="random_curve", dtype=torch.float64)
         obs, _ = gym_env.reset(seed=5 + i)
         np.testing.assert_array_equal(obs["target_poses"], t5[i].float().numpy())
@@ -110,7 +110,7 @@ def test_env_random_curve_start_shapes_match_single_envs(small):
     for i in range(2):
         single = BatchedShapeControl(1, target="random_curve", params=small, dtype=torch.float64)
         single.reset(seed=11 + i)
-        torch.testing.assert_close(single.pos[0], env.pos[i], rtol=0, atol=1e-12)
+        torch.testing.assert_close(single.get_state().pos[0], env.get_state().pos[i], rtol=0, atol=1e-12)
 
 
 # -------------------------------------------------------------------------- shape_gain, step_penalty, success_bonus
@@ -126,9 +126,9 @@ ACTION = [[0.4, 0.9, 0.2]]            # node 2 of 6, drag (+0.08, -0.06) m
 
 def test_shape_gain_reward_of_a_real_move(small):
     env = _placed(small, reward="shape_gain")
-    prev, target = env.pos[0].clone(), env.target[0].clone()
+    prev, target = env.get_state().pos[0].clone(), env.get_state().target[0].clone()
     _, r, term, trunc, info = env.step(torch.tensor(ACTION, dtype=torch.float64))
-    new = env.pos[0]
+    new = env.get_state().pos[0]
     assert (new - prev).abs().max() > 0.01                    # the rope really moved
     expect = 100.0 * (np_shape_error(prev, target) - np_shape_error(new, target))
     assert abs(expect) > 0.1                                  # and the error changed by a visible amount
@@ -137,7 +137,7 @@ def test_shape_gain_reward_of_a_real_move(small):
     # the same move under the step penalty pays exactly the penalty less
     pen = _placed(small, reward="shape_gain", step_penalty=0.25)
     _, r_pen, *_ = pen.step(torch.tensor(ACTION, dtype=torch.float64))
-    assert torch.equal(pen.pos, env.pos)
+    assert torch.equal(pen.get_state().pos, env.get_state().pos)
     assert float(r_pen[0]) == pytest.approx(expect - 0.25, abs=1e-9)
 
 
@@ -184,7 +184,7 @@ def _near_edge(small, **kw):
 def test_on_exit_fail_terminates_with_the_exit_penalty(small):
     env = _near_edge(small, on_exit="fail", exit_penalty=3.0, step_penalty=0.5)
     _, r, term, trunc, info = env.step(torch.tensor(DRAG_OUT, dtype=torch.float64))
-    assert float(env.pos[0, :, 0].max()) > 1.0                # it left the workspace
+    assert float(env.get_state().pos[0, :, 0].max()) > 1.0                # it left the workspace
     assert bool(term[0]) and not bool(trunc[0])
     assert float(r[0]) == -3.0
     assert not bool(info["is_success"][0])
@@ -192,12 +192,12 @@ def test_on_exit_fail_terminates_with_the_exit_penalty(small):
 
 def test_on_exit_truncate_is_the_default_and_keeps_the_reward(small):
     env = _near_edge(small)
-    assert env.on_exit == "truncate"
-    prev, target = env.pos[0].clone(), env.target[0].clone()
+    assert env.rules.on_exit == "truncate"
+    prev, target = env.get_state().pos[0].clone(), env.get_state().target[0].clone()
     _, r, term, trunc, info = env.step(torch.tensor(DRAG_OUT, dtype=torch.float64))
-    assert float(env.pos[0, :, 0].max()) > 1.0
+    assert float(env.get_state().pos[0, :, 0].max()) > 1.0
     assert bool(trunc[0]) and not bool(term[0]) and not bool(info["is_success"][0])
-    expect = 100.0 * (np_shape_error(prev, target) - np_shape_error(env.pos[0], target))
+    expect = 100.0 * (np_shape_error(prev, target) - np_shape_error(env.get_state().pos[0], target))
     assert float(r[0]) == pytest.approx(expect, abs=1e-9)
     penalised = _near_edge(small, exit_penalty=3.0)           # exit_penalty only applies under on_exit="fail"
     _, r2, *_ = penalised.step(torch.tensor(DRAG_OUT, dtype=torch.float64))
@@ -212,7 +212,7 @@ def test_success_takes_precedence_over_exit(small, on_exit):
     rope = straight(small, 0.0, shift=(0.95, 0.0)).double()  # last node at x = 1.025: outside, and on target
     env.set_state(pos=rope[None], target=straight(small, 0.0).double(), steps=0)
     _, r, term, trunc, info = env.step(torch.tensor([ZERO_DRAG], dtype=torch.float64))
-    assert float(env.pos[0, :, 0].max()) > 1.0
+    assert float(env.get_state().pos[0, :, 0].max()) > 1.0
     assert bool(info["is_success"][0]) and bool(term[0]) and not bool(trunc[0])
     assert float(r[0]) == small.success_bonus
 
@@ -246,7 +246,7 @@ def test_gymnasium_make_and_check_env(small):
     env = gym.make(ENV_ID, params=small, target="random_curve", on_exit="fail", reward="shape_gain",
                    step_penalty=0.1, exit_penalty=1.0)
     core = env.unwrapped.core
-    assert (core.target_spec, core.on_exit, core.reward_type) == ("random_curve", "fail", "shape_gain")
+    assert (core.get_state().target_spec, core.rules.on_exit, core.reward_type) == ("random_curve", "fail", "shape_gain")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_env(env.unwrapped)
@@ -278,10 +278,10 @@ def test_held_out_target_files(params):
 def test_random_curve_family_width_is_an_env_option(params):
     env = BatchedShapeControl(8, target="random_curve", curve_max_turn_deg=20.0, params=params)
     env.reset(seed=0)
-    t = turns_deg(env.target.double())
+    t = turns_deg(env.get_state().target.double())
     assert t.abs().max() <= 20.0 + 1e-3 and t.abs().max() > CURVE_MAX_TURN_DEG   # wider than the default 12 deg
     narrow = BatchedShapeControl(8, target="random_curve", params=params)
     narrow.reset(seed=0)
-    assert turns_deg(narrow.target.double()).abs().max() <= CURVE_MAX_TURN_DEG + 1e-3
+    assert turns_deg(narrow.get_state().target.double()).abs().max() <= CURVE_MAX_TURN_DEG + 1e-3
     with pytest.raises(ValueError, match=r"curve_max_turn_deg: .*\[0, 90\], got 120"):
         BatchedShapeControl(1, target="random_curve", curve_max_turn_deg=120, params=params)

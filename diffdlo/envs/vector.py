@@ -3,8 +3,8 @@
 ``gymnasium.make_vec("DiffDLO/ShapeControl-v0", num_envs=B, **kwargs)`` builds this class (registered as the
 ``vector_entry_point``). Autoreset mode: ``AutoresetMode.NEXT_STEP`` (gymnasium's default, same as SyncVectorEnv):
 after a sub-env ends, its next ``step`` ignores its action, resets it and returns the first observation of the new
-episode with reward 0 and terminated = truncated = False. Sub-env i reset with seed s behaves exactly like a single
-``ShapeControlEnv`` reset with seed s + i.
+episode with reward 0 and terminated = truncated = False (the core's ``step(..., autoreset="next_step")``). Sub-env i
+reset with seed s behaves exactly like a single ``ShapeControlEnv`` reset with seed s + i.
 """
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .shape_control import BatchedShapeControl, _choice_error, check_actions, to_numpy
+from .core import BatchedShapeControl, _choice_error, check_actions
+from .shape_control import to_numpy
 
 
 class ShapeControlVectorEnv(VectorEnv):
@@ -40,7 +41,6 @@ class ShapeControlVectorEnv(VectorEnv):
         self.single_action_space = self.core.single_action_space
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self._autoreset = np.zeros(self.num_envs, dtype=bool)
 
     def reset(self, *, seed: int | list[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
@@ -51,21 +51,13 @@ class ShapeControlVectorEnv(VectorEnv):
         if seed is not None and not isinstance(seed, (int, np.integer)) and len(seed) != self.num_envs:
             raise ValueError(f"seed must be an int, None or a list of {self.num_envs} seeds, got {seed!r}")
         obs, info = self.core.reset(seed=seed, options=options, mask=mask_np)
-        self._autoreset[mask_np] = False
         return to_numpy(obs), self._info(info)
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         a = check_actions(actions, (self.num_envs, self.core.action_dim))
-        done = self._autoreset.copy()
-        _, reward, terminated, truncated, _ = self.core.step(a, mask=~done)
-        if done.any():
-            self.core.reset(mask=done)
-        obs, info = self.core.observe(), self.core.info()
-        terminated_np = terminated.cpu().numpy()
-        truncated_np = truncated.cpu().numpy()
-        self._autoreset = terminated_np | truncated_np
-        return (to_numpy(obs), reward.cpu().numpy().astype(np.float64), terminated_np, truncated_np,
-                self._info(info))
+        obs, reward, terminated, truncated, info = self.core.step(a, autoreset="next_step")
+        return (to_numpy(obs), reward.cpu().numpy().astype(np.float64), terminated.cpu().numpy(),
+                truncated.cpu().numpy(), self._info(info))
 
     def _info(self, info: dict[str, torch.Tensor]) -> dict[str, Any]:
         out: dict[str, Any] = {}

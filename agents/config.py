@@ -1,0 +1,220 @@
+"""The options every learner shares, as dataclasses composed into each learner's config, and how configs are read.
+
+A learner's config (e.g. ``agents.sac.SACConfig``) holds ``task: TaskOptions`` (the env: target, observations,
+actions, reward, the episode-end rules), ``run: RunOptions`` (budget, seed, devices, evaluation, checkpoints) and,
+for SAC and PPO, ``inputs: InputOptions`` (how observations become network inputs), then its algorithm's own fields.
+YAML files (``params/<algo>.yaml``) and ``--set`` name every option by its own flat name (``target``, ``seed``,
+``lr``...): the names are unique across the parts, and ``from_flat`` puts each where it belongs.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+
+from agents.hybrid import FEATURE_OBS
+from diffdlo.params import CableParams, load_params
+from diffdlo.rewards import REWARDS
+from diffdlo.task import ACTION_TYPES, EXIT_RULES, OBS_TYPES
+
+PARAMS_DIR = Path(__file__).resolve().parent.parent / "params"
+SECTIONS = ("task", "run", "inputs")
+ENCODERS = ("nature", "keypoints")
+POLICIES = ("hybrid", "gaussian")
+
+
+def _positive_int(key: str, v: Any, least: int = 1) -> None:
+    if not isinstance(v, int) or isinstance(v, bool) or v < least:
+        raise ValueError(f"{key} must be a{' positive' if least == 1 else ' non-negative'} integer, got {v!r}")
+
+
+def _choice(key: str, v: Any, allowed) -> None:
+    if v not in allowed:
+        raise ValueError(f"unknown {key} {v!r}: use one of {list(allowed)}")
+
+
+@dataclasses.dataclass
+class TaskOptions:
+    """The env a learner trains and is evaluated on (diffdlo.envs.BatchedShapeControl's arguments)."""
+    target: Any = "random"
+    obs: str = "points"
+    action: str = "node"
+    reward: str = "position_orientation"
+    max_steps: int | None = None          # actions per episode (None: params' 100)
+    params: str = "cable"
+    param_overrides: dict | None = None   # e.g. {n_nodes: 6, length: 0.15} for quick tests
+    start: Any = None                     # None (random start) or a .npy path / (N, 2) list: a fixed start shape
+    success_tol: float | None = None      # None: params' 0.01 m
+    image_size: int = 64
+    success_bonus: float | None = None    # None: params' 20 (Algorithm 2)
+    step_penalty: float = 0.0
+    on_exit: str = "truncate"             # "fail": leaving the workspace terminates the episode
+    exit_penalty: float = 0.0
+    curve_max_turn_deg: float = 12.0      # target "random_curve": the largest turn per node [deg]
+    mark_end: bool = False                # images: a dot on node 0 of rope and target (env option)
+
+    def check(self) -> None:
+        _choice("obs type", self.obs, OBS_TYPES)
+        _choice("action type", self.action, ACTION_TYPES)
+        _choice("reward", self.reward, REWARDS)
+        _choice("on_exit", self.on_exit, EXIT_RULES)
+        if not isinstance(self.mark_end, bool):
+            raise ValueError(f"mark_end must be true or false, got {self.mark_end!r}")
+        po = self.param_overrides
+        if po is not None:
+            fields = {f.name for f in dataclasses.fields(CableParams)}
+            if not isinstance(po, dict) or set(po) - fields:
+                raise ValueError(f"param_overrides must map CableParams fields ({sorted(fields)}) to values, got "
+                                 f"{po!r} (YAML flow maps need a space after each colon: {{n_nodes: 6}})")
+
+    def cable_params(self) -> CableParams:
+        """The run's cable parameters, resolved once (params file, then param_overrides) and passed down."""
+        p = load_params(self.params)
+        return dataclasses.replace(p, **self.param_overrides) if self.param_overrides else p
+
+
+@dataclasses.dataclass
+class RunOptions:
+    """Budget, seed, devices, evaluation and checkpoints of a run."""
+    total_steps: int = 100_000            # env transitions, all envs together
+    num_envs: int = 16
+    seed: int = 0
+    device: str = "cpu"                   # networks and buffer
+    env_device: str = ""                  # the simulator ("": same as device; "cpu" with device "cuda": fused CPU kernel)
+    threads: int = 1                      # torch CPU threads during training (restored afterwards)
+    eval_every: int = 10_000
+    eval_episodes: int = 20
+    eval_seed: int = 10_000
+    eval_targets: list = dataclasses.field(default_factory=list)   # held-out targets evaluated at the end
+    checkpoint_every: int = 10_000
+    log_every: int = 100                  # updates (SAC, PlaNet) or rollouts (PPO) between train-loss rows
+
+    def check(self) -> None:
+        for key in ("total_steps", "num_envs", "threads", "eval_every", "eval_episodes", "checkpoint_every",
+                    "log_every"):
+            _positive_int(key, getattr(self, key))
+        for key in ("device", "env_device"):
+            v = getattr(self, key)
+            if key == "env_device" and not v:
+                continue                      # "": the learner's device
+            try:
+                dev = torch.device(v)
+            except (RuntimeError, TypeError) as exc:
+                raise ValueError(f"{key} must be a torch device such as 'cpu' or 'cuda', got {v!r}") from exc
+            if dev.type == "cuda" and not torch.cuda.is_available():
+                raise ValueError(f"{key}={v!r}: CUDA is not available on this machine")
+
+
+@dataclasses.dataclass
+class InputOptions:
+    """How observations become network inputs (agents/networks.py ``Features``): target-relative features
+    (agents/hybrid.py), optionally running-normalized, or SB3's encoder (flattened floats, a CNN on images)."""
+    features: str = "raw"                 # "relative" | "raw"
+    normalize_obs: bool = False           # running mean/std of the features (relative features only)
+    cnn_channels: list = dataclasses.field(default_factory=lambda: [32, 64, 64])
+    features_dim: int = 256
+    encoder: str = "nature"               # images: "nature" (SB3 NatureCNN) | "keypoints" (spatial softmax)
+    keypoints: int = 32                   # encoder "keypoints": feature maps -> 2 x keypoints coordinates
+    augment_shift: int = 0                # images: DrQ random shift of up to this many pixels (0: off)
+
+    def check(self, task: TaskOptions) -> None:
+        _choice("features", self.features, ("relative", "raw"))
+        _choice("encoder", self.encoder, ENCODERS)
+        if self.features == "relative" and task.obs not in FEATURE_OBS:
+            raise ValueError(f"features 'relative' need obs {list(FEATURE_OBS)}, got {task.obs!r} "
+                             "(use --set features=raw for images)")
+        if self.normalize_obs and self.features != "relative":
+            raise ValueError("normalize_obs needs features 'relative' (images and raw observations are not normalized)")
+        _positive_int("keypoints", self.keypoints)
+        _positive_int("augment_shift", self.augment_shift, least=0)
+
+
+def check_policy(policy: str, task: TaskOptions) -> None:
+    """SAC's and PPO's policy head: "hybrid" (node categorical + per-node drag) needs node actions."""
+    _choice("policy", policy, POLICIES)
+    if policy == "hybrid" and task.action != "node":
+        raise ValueError(f"policy 'hybrid' chooses a node: it needs action 'node', got {task.action!r} "
+                         "(use --set policy=gaussian for pixel actions)")
+
+
+def part(cls, **defaults):
+    """A learner config's field holding a ``cls`` (TaskOptions, RunOptions, InputOptions) with these defaults."""
+    return dataclasses.field(default_factory=lambda: cls(**defaults))
+
+
+# ====================================================================== flat names <-> the composed config
+def _section_fields(cls) -> dict[str, str]:
+    """flat option name -> the section that holds it ("" for the learner's own fields)."""
+    owner: dict[str, str] = {}
+    for f in dataclasses.fields(cls):
+        if f.name in SECTIONS:
+            for g in dataclasses.fields(f.default_factory()):
+                owner[g.name] = f.name
+        else:
+            owner[f.name] = ""
+    return owner
+
+
+def flat_names(cls) -> list[str]:
+    return sorted(_section_fields(cls))
+
+
+def from_flat(cls, values: dict[str, Any], base=None):
+    """A config ``cls`` from flat option names (YAML, ``--set``), on top of ``base`` (default: cls's defaults).
+    Also takes the nested form of ``to_dict`` (sections as dicts). Unknown names raise ValueError."""
+    owner = _section_fields(cls)
+    base = cls() if base is None else base
+    top: dict[str, Any] = {}
+    parts: dict[str, dict[str, Any]] = {}
+    unknown = []
+    for key, v in values.items():
+        if key in SECTIONS and isinstance(v, dict) and hasattr(base, key):
+            for k2, v2 in v.items():
+                (parts.setdefault(key, {}).__setitem__(k2, v2) if owner.get(k2) == key else unknown.append(k2))
+        elif key not in owner:
+            unknown.append(key)
+        elif owner[key]:
+            parts.setdefault(owner[key], {})[key] = v
+        else:
+            top[key] = v
+    if unknown:
+        raise ValueError(f"unknown config keys {sorted(unknown)} for {cls.__name__}: allowed {flat_names(cls)}")
+    sections = {s: dataclasses.replace(getattr(base, s), **kv) for s, kv in parts.items()}
+    return dataclasses.replace(base, **top, **sections)
+
+
+def replace(cfg, **values):
+    """``dataclasses.replace`` by flat option names: ``replace(cfg, target="diagonal", lr=1e-3)``."""
+    return from_flat(type(cfg), values, base=cfg)
+
+
+def to_dict(cfg) -> dict[str, Any]:
+    """The nested dict of a config (what a checkpoint stores); ``from_flat`` reads it back."""
+    return dataclasses.asdict(cfg)
+
+
+# ====================================================================== presets and YAML files
+def preset_path(algo: str, preset: str | None) -> Path:
+    """``params/<algo>.yaml`` for the preset "tuned" (the default), ``params/<algo>-<preset>.yaml`` otherwise."""
+    if preset in (None, "tuned"):
+        return PARAMS_DIR / f"{algo}.yaml"
+    path = PARAMS_DIR / f"{algo}-{preset}.yaml"
+    if not path.exists():
+        known = ["tuned"] + sorted(p.stem[len(algo) + 1:] for p in PARAMS_DIR.glob(f"{algo}-*.yaml"))
+        raise ValueError(f"unknown preset {preset!r} for {algo}: use one of {known}")
+    return path
+
+
+def load_config(cls, name: str | Path, overrides: dict[str, Any] | None = None):
+    """Config ``cls`` from ``params/<name>.yaml`` (or a YAML path) then ``overrides`` (flat names), checked."""
+    path = Path(name) if str(name).endswith((".yaml", ".yml")) else PARAMS_DIR / f"{name}.yaml"
+    if not path.exists():
+        raise ValueError(f"config file {str(path)!r} does not exist")
+    values = yaml.safe_load(path.read_text()) or {}
+    values.update(overrides or {})
+    cfg = from_flat(cls, values)
+    cfg.check()
+    return cfg

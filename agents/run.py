@@ -1,0 +1,162 @@
+"""What every learner's run shares, written once: the envs, the counters, the logger and progress bar, the
+evaluation and checkpoint schedule, the one resume path and the results.
+
+A learner's ``train`` reads::
+
+    @learner                                              # checks cfg, sets the torch threads
+    def train(cfg, out, resume=False, progress=True):
+        run = Run("sac", cfg, out, resume, progress)      # seeds, resolves the params once, builds, resets the envs
+        ...networks, optimizers, buffer...
+        ck = run.start(actor=actor, critic=critic, ...)   # --resume: loads them, the env, counters, RNG; logger
+        while run.step < cfg.run.total_steps:
+            ...act: next_obs, reward, term, trunc, info, final_obs = run.env.step(action)
+            run.count(info, term, trunc)
+            ...learn
+            run.evaluate_if_due(lambda: run.evaluate(policy))
+            run.checkpoint_if_due(lambda: {"actor": actor, ...})
+        return run.finish(policy, extra={...})
+
+Everything with a ``state_dict`` is saved by it; other values as they are.
+"""
+from __future__ import annotations
+
+import functools
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from tqdm import tqdm
+
+from agents.checkpoints import (CHECKPOINT, load_checkpoint, rng_state, save_checkpoint, seed_everything,
+                                set_rng_state, torch_threads)
+from agents.config import to_dict
+from agents.envs import make_env
+from agents.evaluation import eval_row, evaluate, evaluate_heldout, heldout_envs, write_results
+from agents.logs import EpisodeStats, Logger, fmt_postfix
+
+
+def learner(train: Callable) -> Callable:
+    """A learner's ``train(cfg, out, resume=False, progress=True)``: the config checked, then run with
+    cfg.run.threads torch CPU threads (restored afterwards)."""
+    @functools.wraps(train)
+    def checked_train(cfg, out: Path | str, resume: bool = False, progress: bool = True) -> dict[str, Any]:
+        cfg.check()
+        with torch_threads(cfg.run.threads):
+            return train(cfg, out, resume, progress)
+    return checked_train
+
+
+class Run:
+    """One learner's run: ``cfg.task`` and ``cfg.run`` (agents/config.py) made into envs, counters and files."""
+
+    def __init__(self, algo: str, cfg, out: Path | str, resume: bool, progress: bool):
+        self.algo, self.cfg, self.out, self.resume = algo, cfg, Path(out), resume
+        self.out.mkdir(parents=True, exist_ok=True)
+        task, opts = cfg.task, cfg.run
+        self.device = torch.device(opts.device)
+        seed_everything(opts.seed)
+        self.params = task.cable_params()
+        self.env = make_env(task, opts, self.params, opts.num_envs)
+        self.eval_env = make_env(task, opts, self.params, min(opts.eval_episodes, 32))
+        self.heldout = heldout_envs(task, opts, self.params)
+        self.obs = self.env.reset(seed=opts.seed)
+        self.stats = EpisodeStats()
+        self.step, self.last_eval, self.last_ckpt, self.wall_before = 0, 0, 0, 0.0
+        self.last_success: float | None = None
+        self.result: dict[str, Any] | None = None
+        self.progress = progress
+        self.logger: Logger | None = None
+        self.bar: tqdm | None = None
+        self.t0 = time.perf_counter()
+
+    # ------------------------------------------------------------------ start (and resume)
+    def start(self, **parts: Any) -> dict[str, Any] | None:
+        """Load ``parts`` (name -> object with load_state_dict), the env, the counters and every RNG from the
+        checkpoint on --resume, then open the logs and the progress bar. Returns the checkpoint (for a learner's own
+        counters), or None on a fresh run."""
+        ck = None
+        if self.resume:
+            ck = load_checkpoint(self.out / CHECKPOINT)
+            for name, part in parts.items():
+                part.load_state_dict(ck[name])
+            self.env.load_state_dict(ck["env"])
+            self.obs = self.env.observe()
+            self.stats.buf.extend(ck["episode_stats"])
+            self.step, self.last_eval, self.last_ckpt = ck["step"], ck["last_eval"], ck["last_ckpt"]
+            self.last_success, self.wall_before = ck["last_success"], ck["wall_s"]
+            set_rng_state(ck["rng"])
+        self.logger = Logger(self.out, resume_step=self.step if self.resume else None)
+        total = self.cfg.run.total_steps
+        self.bar = tqdm(total=total, initial=min(self.step, total), desc=self.algo, disable=not self.progress,
+                        dynamic_ncols=True, file=sys.stderr)
+        self.t0 = time.perf_counter()
+        return ck
+
+    # ------------------------------------------------------------------ the loop's bookkeeping
+    def count(self, info: dict[str, torch.Tensor], term: torch.Tensor, trunc: torch.Tensor,
+              update_bar: bool = True) -> None:
+        """One batched env step taken: its finished episodes recorded, the step counter (and the bar) advanced."""
+        done = (term | trunc).cpu()
+        if bool(done.any()):
+            self.stats.add(info, done)
+        self.step += self.cfg.run.num_envs
+        if update_bar:
+            self.bar.update(self.cfg.run.num_envs)
+
+    def log_rollout(self) -> None:
+        if self.stats.buf:
+            self.logger.log("rollout", self.step, self.stats.means())
+
+    def evaluate(self, policy: Callable[[Any, bool], torch.Tensor]) -> dict[str, Any]:
+        opts = self.cfg.run
+        return evaluate(policy, self.eval_env, opts.eval_episodes, seed=opts.eval_seed)
+
+    def evaluate_if_due(self, evaluate_fn: Callable[[], dict[str, Any]]) -> None:
+        """Every eval_every env steps and at the end of the budget: ``evaluate_fn()`` logged as an eval row."""
+        opts = self.cfg.run
+        if self.step - self.last_eval >= opts.eval_every or self.step >= opts.total_steps:
+            self.last_eval = self.step
+            self.result = evaluate_fn()
+            self.last_success = self.result["success_rate"]
+            self.logger.log("eval", self.step, eval_row(self.result))
+            self.bar.set_postfix(fmt_postfix(self.last_success))
+
+    def checkpoint_if_due(self, parts_fn: Callable[[], dict[str, Any]]) -> None:
+        """Every checkpoint_every env steps and at the end of the budget: the learner's parts and the run's state in
+        one atomic file."""
+        opts = self.cfg.run
+        if self.step - self.last_ckpt >= opts.checkpoint_every or self.step >= opts.total_steps:
+            self.last_ckpt = self.step
+            self.save(parts_fn())
+
+    def save(self, parts: dict[str, Any]) -> None:
+        state = {k: v.state_dict() if hasattr(v, "state_dict") else v for k, v in parts.items()}
+        save_checkpoint(self.out / CHECKPOINT, {
+            "algo": self.algo, "config": to_dict(self.cfg), **state, "env": self.env.state_dict(),
+            "episode_stats": list(self.stats.buf), "step": self.step, "last_eval": self.last_eval,
+            "last_ckpt": self.last_ckpt, "last_success": self.last_success, "wall_s": self.wall_s(),
+            "rng": rng_state()})
+
+    def wall_s(self) -> float:
+        """Training and its evaluations so far, over every resumed part of the run."""
+        return self.wall_before + time.perf_counter() - self.t0
+
+    # ------------------------------------------------------------------ the end
+    def finish(self, policy: Callable[[Any, bool], torch.Tensor] | None, extra: dict[str, Any] | None = None,
+               evaluate_fn: Callable[[], dict[str, Any]] | None = None,
+               policy_for: Callable[[Any], Callable] | None = None,
+               before_heldout: Callable[[], None] | None = None) -> dict[str, Any]:
+        """Close the bar and logs, evaluate once more if the run had nothing left to train (resumed at its end),
+        evaluate on the held-out targets (not counted in wall_s) and write results.json and its picture."""
+        self.bar.close()
+        if self.result is None:
+            self.result = evaluate_fn() if evaluate_fn is not None else self.evaluate(policy)
+        self.logger.close()
+        wall = self.wall_s()
+        if before_heldout is not None:
+            before_heldout()
+        held = evaluate_heldout(policy, self.heldout, self.cfg.run, policy_for=policy_for)
+        return write_results(self.out, self.algo, self.cfg.task, self.cfg.run.seed, self.result, self.step, wall,
+                             heldout=held, extra=extra)

@@ -1,0 +1,159 @@
+"""Running cells: each one a subprocess of the project's own entry point, N at once or as Ray tasks, finished cells
+skipped, interrupted learners resumed from their checkpoint, a planner's random cell run episode by episode."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+from .grid import ROOT, cell_dir, command_line, is_done, subrun_argv
+
+
+def machine_info(cell: dict[str, Any]) -> dict[str, Any]:
+    """Where a cell runs (its wall time depends on it): host, CPU count, and the GPU a learner uses."""
+    info: dict[str, Any] = {"host": platform.node(), "cpus": os.cpu_count()}
+    dev = cell.get("learner_device")
+    if dev and dev.startswith("cuda"):
+        import torch
+        info["gpu"] = torch.cuda.get_device_name(torch.device(dev)) if torch.cuda.is_available() else "unavailable"
+    return info
+
+
+def _write_cell_json(d: Path, cell: dict[str, Any]) -> None:
+    """cell.json: the cell, the command that reproduces it and the machine it ran on (read by the report)."""
+    (d / "cell.json").write_text(json.dumps(dict(cell, command=command_line(cell), machine=machine_info(cell)),
+                                            indent=2))
+
+
+def _env() -> dict[str, str]:
+    """The entry points' environment: one thread each (cells run side by side), this repository importable."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def _call(argv: list[str], log: Path, cwd: str) -> None:
+    with open(log, "a") as f:
+        f.write(f"$ {shlex.join(['python', *argv])}\n")
+        f.flush()
+        rc = subprocess.run([sys.executable, *argv], cwd=cwd, stdout=f, stderr=subprocess.STDOUT, env=_env()).returncode
+    if rc != 0:
+        raise RuntimeError(f"exit code {rc}: python {shlex.join(argv)} (log: {log})")
+
+
+def random_target_names(seed0: int, n: int) -> list[str]:
+    """The named target the env (target="random") draws at reset(seed=seed0 + i), i < n, as the env reports it."""
+    from diffdlo.envs import BatchedShapeControl
+
+    env = BatchedShapeControl(n, target="random")
+    env.reset(seed=seed0)                  # rope i gets seed seed0 + i: the draw of a one-rope env reset with it
+    return list(env.get_state().target_names)
+
+
+def merge_subruns(parts: list[dict[str, Any]], cell: dict[str, Any]) -> dict[str, Any]:
+    """One results.json from the one-episode runs of a planner's random cell. Each episode's target is the one its
+    run reports (the episode's "target_name"; the run's --target in results written before that key)."""
+    eps = [e for p in parts for e in p["episodes"]]
+    names = [e.get("target_name", p["target"]) for p in parts for e in p["episodes"]]
+    if names != cell["subrun_targets"]:
+        raise RuntimeError(f"{cell['dir']}: the runs report targets {names}, the env drew {cell['subrun_targets']}")
+    steps = sum(p["env_steps"] for p in parts)
+    plan_s = sum(e.get("plan_s", 0.0) for e in eps)
+    res = dict(parts[0], target="random", seed=cell["eval_seed"], episodes=eps,
+               success_rate=sum(e["success"] for e in eps) / len(eps), env_steps=steps,
+               wall_s=sum(p["wall_s"] for p in parts), sim_evals=sum(p.get("sim_evals", 0) for p in parts),
+               plan_s_per_step=plan_s / max(steps, 1), episode_targets=names)
+    res.pop("config", None)
+    return res
+
+
+def _run_subruns(cell: dict[str, Any], log: Path) -> dict[str, Any]:
+    """A planner's random cell: one run per episode on the target the env draws for it (a finished run is kept).
+    Returns the cell with those targets ("subrun_targets")."""
+    cell = dict(cell, subrun_targets=random_target_names(cell["eval_seed"], len(cell["subruns"])))
+    parts = []
+    for sub, target in zip(cell["subruns"], cell["subrun_targets"]):
+        sub_out = cell_dir(cell, sub[-1])
+        if not (sub_out / "results.json").exists():
+            _call(subrun_argv(cell, sub, target), log, cell["cwd"])
+        parts.append(json.loads((sub_out / "results.json").read_text()))
+    d = cell_dir(cell)
+    _write_cell_json(d, cell)
+    (d / "results.json").write_text(json.dumps(merge_subruns(parts, cell), indent=2))
+    return cell
+
+
+def _resume_argv(cell: dict[str, Any]) -> list[str]:
+    """Continue an interrupted learner from its checkpoint.pt, on the device asked for now, not the saved one."""
+    argv = ["-m", cell["argv"][1], "--out", str(cell_dir(cell)), "--resume", "--no-progress"]
+    if cell.get("total_steps"):
+        argv += ["--total-steps", str(cell["total_steps"])]
+    if cell.get("learner_device"):
+        argv += ["--device", cell["learner_device"]]
+    return argv
+
+
+def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
+    """Run one cell (skipped if finished). Returns {"cell", "status": done|skipped|failed, "wall_s", "error"}."""
+    d = cell_dir(cell)
+    if is_done(cell):
+        return {"cell": cell, "status": "skipped", "wall_s": 0.0}
+    d.mkdir(parents=True, exist_ok=True)
+    log = d / "log.txt"
+    t0 = time.perf_counter()
+    try:
+        if "subruns" in cell:
+            cell = _run_subruns(cell, log)
+        else:
+            resume = cell["kind"] == "agent" and (d / "checkpoint.pt").exists()
+            _write_cell_json(d, cell)
+            _call(_resume_argv(cell) if resume else cell["argv"], log, cell["cwd"])
+        return {"cell": cell, "status": "done", "wall_s": time.perf_counter() - t0}
+    except Exception as exc:  # noqa: BLE001 - a failed cell must not stop the others; it reruns next time
+        return {"cell": cell, "status": "failed", "wall_s": time.perf_counter() - t0, "error": str(exc)}
+
+
+def run_cells(cells: list[dict[str, Any]], jobs: int = 1, ray_address: str | None = None,
+              progress: bool = True) -> list[dict[str, Any]]:
+    """Run the unfinished cells, ``jobs`` at once (threads, each driving one subprocess) or as Ray tasks on
+    ``ray_address`` ("local": ray.init()). Returns run_cell's answer for every cell, finished ones "skipped"."""
+    from tqdm import tqdm
+
+    todo = [c for c in cells if not is_done(c)]
+    results = [{"cell": c, "status": "skipped", "wall_s": 0.0} for c in cells if is_done(c)]
+    bar = tqdm(total=len(cells), initial=len(results), desc="cells", unit="cell", disable=not progress,
+               dynamic_ncols=True)
+
+    def finished(r: dict[str, Any]) -> None:
+        results.append(r)
+        bar.set_postfix_str(f"{r['status']}: {r['cell']['method']}/{r['cell']['variant']}/{r['cell']['target']}")
+        bar.update(1)
+
+    if ray_address is not None:
+        import ray
+
+        # workers import this module through PYTHONPATH; cells hold absolute working directories, so every node must
+        # see the repository and --out at the same paths (a shared filesystem)
+        ray.init(address=None if ray_address == "local" else ray_address, ignore_reinit_error=True,
+                 runtime_env={"env_vars": {"PYTHONPATH": str(ROOT)}})
+        task = ray.remote(num_cpus=1)(run_cell)
+        pending = [task.remote(c) for c in todo]
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            finished(ray.get(ready[0]))
+    else:
+        with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
+            for fut in as_completed([pool.submit(run_cell, c) for c in todo]):
+                finished(fut.result())
+    bar.close()
+    for r in results:
+        if r["status"] == "failed":
+            print(f"FAILED {r['cell']['dir']}: {r.get('error')}", file=sys.stderr)
+    return results

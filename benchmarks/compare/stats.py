@@ -1,0 +1,66 @@
+"""Confidence intervals (95 %, scipy.stats) and the statistics of one report row.
+
+  * t-interval over seeds: mean of the per-seed values +- t_{0.975, n-1} * sd / sqrt(n) (sample sd, ddof 1);
+    success rates clipped to [0, 1]; undefined for one seed;
+  * Wilson score interval over all episodes of all seeds pooled (ignores between-seed variance).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+
+def t_quantile(p: float, df: float) -> float:
+    """Student t quantile."""
+    from scipy import stats
+
+    return float(stats.t.ppf(p, df))
+
+
+def t_interval(values, clip: tuple[float, float] | None = None) -> tuple[float, float, float]:
+    """(mean, low, high): 95 % t-interval of the mean of per-seed values; low = high = nan for fewer than 2 values."""
+    x = np.asarray(values, dtype=float)
+    m = float(x.mean()) if len(x) else float("nan")
+    if len(x) < 2:
+        return m, float("nan"), float("nan")
+    half = t_quantile(0.975, len(x) - 1) * float(x.std(ddof=1)) / math.sqrt(len(x))
+    lo, hi = m - half, m + half
+    if clip is not None:
+        lo, hi = max(lo, clip[0]), min(hi, clip[1])
+    return m, lo, hi
+
+
+def wilson(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float, float]:
+    """(p, low, high): Wilson score interval of a binomial proportion; nan for no trials."""
+    if n == 0:
+        return float("nan"), float("nan"), float("nan")
+    from scipy import stats
+
+    ci = stats.binomtest(int(successes), int(n)).proportion_ci(confidence_level=confidence, method="wilson")
+    return successes / n, float(ci.low), float(ci.high)
+
+
+def row_stats(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Aggregate the finished seeds of one (method, variant, target)."""
+    s1 = [np.mean([e["success"] for e in r["episodes"]]) for r in runs]
+    s2 = [np.mean([e["final_error"] < 0.02 for e in r["episodes"]]) for r in runs]
+    err = [np.mean([e["final_error"] for e in r["episodes"]]) for r in runs]
+    eps = [e for r in runs for e in r["episodes"]]
+    succ = [e["steps"] for e in eps if e["success"]]
+    to2 = [next((k for k, x in enumerate(e["errors"]) if x < 0.02), None) for e in eps if "errors" in e]
+    to2 = [k for k in to2 if k is not None]
+    planner = "sim_evals" in runs[0]
+    return {
+        "seeds": len(runs), "episodes": len(eps),
+        "s1": t_interval(s1, (0.0, 1.0)), "s1_w": wilson(sum(e["success"] for e in eps), len(eps)),
+        "s2": t_interval(s2, (0.0, 1.0)), "s2_w": wilson(sum(e["final_error"] < 0.02 for e in eps), len(eps)),
+        "err": t_interval(err, (0.0, float("inf"))),
+        "moves": (float(np.mean(succ)), len(succ)) if succ else (float("nan"), 0),
+        "moves2": float(np.mean(to2)) if to2 else float("nan"),
+        "env_steps": float(np.mean([r["env_steps"] for r in runs])),
+        "sim_evals": float(np.mean([r["sim_evals"] / len(r["episodes"]) for r in runs])) if planner else None,
+        "wall": float(np.mean([r["wall_s"] for r in runs])),
+        "s_per_move": float(np.mean([r["plan_s_per_step"] for r in runs])) if planner else None,
+    }

@@ -1,0 +1,387 @@
+"""The batched shape-control env core (thesis Chapter 2, Algorithms 1-3): ``BatchedShapeControl``.
+
+It holds B ropes in ONE state object (``EnvState``) and does all the work in torch on the
+simulator's device: one batched ``Simulator.move`` per step, one batched ``Simulator.settle`` per reset. The task's
+rules (targets, action decoding, rewards, episode end, observations) are diffdlo/task.py's; this file holds the
+state and the plumbing. ``ShapeControlEnv`` (gymnasium.Env, ``gymnasium.make("DiffDLO/ShapeControl-v0")``) is the
+core with B = 1 plus a numpy conversion; ``ShapeControlVectorEnv`` (diffdlo/envs/vector.py, ``gymnasium.make_vec``)
+is the core with B = num_envs. Both wrap the same code, so they cannot disagree.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from gymnasium.utils import seeding
+
+from .. import image as rimage
+from .. import task
+from ..params import CableParams, load_params
+from ..rewards import REWARDS
+from ..shapes import CURVE_MAX_TURN_DEG, TARGET_NAMES, random_curve, target_shape
+from ..simulator import Simulator
+from ..task import ACTION_DIMS, ACTION_TYPES, EXIT_RULES, OBS_TYPES
+from .state import EnvState
+
+# Side [m] of the square view window of image observations and pixel actions, centred at the origin: x, y in
+# [-0.5, 0.5]. The rope is 0.5 m long and starts centred at the origin, so a start shape always fits with room for
+# ~0.25 m of drift; at 64 px one pixel is 15.6 mm. A rope may drift out of the view (it is truncated only at the
+# 2 m workspace): pass view_size=2.0 to see the whole workspace at a coarser 31 mm/pixel.
+DEFAULT_VIEW_SIZE = 1.0
+RENDER_SIZE = 256
+INFO_KEYS = ("shape_error", "orientation_error", "is_success", "node", "substeps")
+AUTORESET_MODES = (None, "next_step", "same_step")
+
+
+def _choice_error(what: str, value: Any, allowed: Sequence[Any]) -> ValueError:
+    return ValueError(f"unknown {what} {value!r}: use one of {list(allowed)}")
+
+
+def resolve_params(params: CableParams | str | Path | None) -> CableParams:
+    """A CableParams, a params name (``params/<name>.yaml``), a YAML path, or None (``cable``)."""
+    if params is None:
+        return load_params("cable")
+    if isinstance(params, CableParams):
+        return params
+    if isinstance(params, (str, Path)):
+        return load_params(params)
+    raise TypeError(f"params must be a CableParams, a params name or a YAML path, got {type(params).__name__}")
+
+
+def check_actions(actions: Any, shape: tuple[int, ...]) -> torch.Tensor:
+    """Validate an action batch: exact shape, finite values. Returns a float64 tensor (not yet clipped)."""
+    try:
+        a = actions.detach() if torch.is_tensor(actions) else torch.as_tensor(np.asarray(actions, dtype=np.float64))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"action must be an array of numbers of shape {shape}, got {actions!r}") from exc
+    if not (a.is_floating_point() or a.dtype in (torch.int64, torch.int32, torch.bool)):
+        raise ValueError(f"action must hold real numbers, got dtype {a.dtype}")
+    if tuple(a.shape) != tuple(shape):
+        raise ValueError(f"action must have shape {tuple(shape)}, got {tuple(a.shape)}: {actions!r}")
+    a = a.to(torch.float64)
+    if not bool(torch.isfinite(a).all()):
+        raise ValueError(f"action contains NaN or inf: {a.cpu().numpy().tolist()}")
+    return a
+
+
+class BatchedShapeControl:
+    """B independent shape-control episodes in torch: tensors in, tensors out, on the simulator's device.
+
+    Arguments (shared by the gymnasium envs):
+      num_envs: B.
+      target: "random" (one of TARGET_NAMES drawn at every reset, the thesis's default), "random_curve" (a smooth
+        random curve drawn at every reset, diffdlo.shapes.random_curve), a name in TARGET_NAMES, an (N, 2)
+        array/tensor, or a .npy/.yaml path. Drawn targets come from the env's per-env generator, seeded like the
+        start shapes.
+      obs_type: "points" (dict node_poses, target_poses (N, 2) float32: the multi-input observation),
+        "distance" ((N, 2) float32 rope - target per node: the single-input observation), "image" (dict
+        image, target_image: RGB uint8 (S, S, 3) of the rope and of the target) or "image_single" (dict
+        image: rope drawn over the target in one picture).
+      action_type: "node" (eq 2.6, [0, 1]^3: node = round(a0 (N-1)), dx, dy = a 2 s - s with s =
+        params.action_scale) or "pixel" (eq 2.5, [0, 1]^4: (a0, a1) = (column, row) fractions of the image view
+        window, row 0 at the top; the node nearest to that point is grasped; dx, dy as for "node").
+        Actions outside [0, 1] are clipped to [0, 1]; NaN/inf or a wrong shape raise ValueError.
+      reward: one of diffdlo.REWARDS ("position_orientation" eq 2.9-2.11, "abs_diff" eq 2.7, "delta_gain" eq 2.8,
+        "shape_gain": ours, the centimetres of shape error a move removed).
+      max_steps, success_tol: default params.max_episode_steps and params.success_tol.
+      params: CableParams, params name or YAML path (resolved here, once). image_size: S (default 64). view_size:
+        side [m] of the square view window centred at the origin (default 1.0). device, dtype, backend: of the
+        simulator (backend "torch" forces the eager reference path).
+      success_bonus: reward of the successful move (default params.success_bonus = 20, Algorithm 2).
+      step_penalty: subtracted from the reward of every move that does not succeed (default 0: the thesis's).
+      on_exit: what happens when a node leaves the workspace: "truncate" (default, the thesis's Algorithm 2: the
+        episode is cut off, a learner bootstraps as after a time limit) or "fail" (ours: the episode TERMINATES
+        with reward -exit_penalty, so leaving pays nothing more, ever; success is still only is_success).
+      exit_penalty: the reward of a move that leaves the workspace under on_exit="fail" is -exit_penalty
+        (default 0).
+      curve_max_turn_deg: the largest turning angle per node of target="random_curve" (default 12 deg).
+      mark_end: image observations draw a dot on node 0 of the rope (green) and of the target (amber), so a rope
+        and its reversal look different (default False: the thesis's pictures, where they do not).
+      start: None (a random start shape, settled: thesis model.free) or a fixed (N, 2) start shape placed as is
+        after every reset (custom easy tasks).
+    Episode end: diffdlo.task.step_outcome (Algorithm 2 with the error metric). ``info["is_success"]`` tells a
+    success from a failure: ``terminated`` alone does not, under on_exit="fail".
+    """
+
+    def __init__(self, num_envs: int = 1, target: Any = "random", obs_type: str = "points", action_type: str = "node",
+                 reward: str = "position_orientation", max_steps: int | None = None, success_tol: float | None = None,
+                 params: CableParams | str | Path | None = None, image_size: int = 64,
+                 view_size: float = DEFAULT_VIEW_SIZE, device: torch.device | str = "cpu",
+                 dtype: torch.dtype = torch.float32, backend: str = "auto", success_bonus: float | None = None,
+                 step_penalty: float = 0.0, on_exit: str = "truncate", exit_penalty: float = 0.0,
+                 curve_max_turn_deg: float = CURVE_MAX_TURN_DEG, mark_end: bool = False, start: Any = None):
+        if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if not isinstance(obs_type, str) or obs_type not in OBS_TYPES:
+            raise _choice_error("obs_type", obs_type, OBS_TYPES)
+        if not isinstance(action_type, str) or action_type not in ACTION_TYPES:
+            raise _choice_error("action_type", action_type, ACTION_TYPES)
+        if not isinstance(reward, str) or reward not in REWARDS:
+            raise _choice_error("reward", reward, REWARDS)
+        self.params = p = resolve_params(params)
+        if max_steps is None:
+            max_steps = p.max_episode_steps
+        if not isinstance(max_steps, (int, np.integer)) or isinstance(max_steps, bool) or max_steps < 1:
+            raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
+        success_tol = p.success_tol if success_tol is None else success_tol
+        if not isinstance(success_tol, (int, float)) or not success_tol > 0 or not np.isfinite(success_tol):
+            raise ValueError(f"success_tol must be a positive number [m], got {success_tol!r}")
+        if not isinstance(image_size, (int, np.integer)) or isinstance(image_size, bool) or image_size < 8:
+            raise ValueError(f"image_size must be an integer >= 8, got {image_size!r}")
+        if not isinstance(view_size, (int, float)) or not view_size > 0 or not np.isfinite(view_size):
+            raise ValueError(f"view_size must be a positive number [m], got {view_size!r}")
+        success_bonus = p.success_bonus if success_bonus is None else success_bonus
+        for name, v in (("success_bonus", success_bonus), ("step_penalty", step_penalty),
+                        ("exit_penalty", exit_penalty)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise ValueError(f"{name} must be a finite number, got {v!r}")
+        if not isinstance(on_exit, str) or on_exit not in EXIT_RULES:
+            raise _choice_error("on_exit", on_exit, EXIT_RULES)
+        try:
+            random_curve(1, p, torch.Generator().manual_seed(0), max_turn_deg=curve_max_turn_deg)   # checks the value
+        except ValueError as exc:
+            raise ValueError(f"curve_max_turn_deg: {exc}") from exc
+        self.curve_max_turn_deg = float(curve_max_turn_deg)
+        if not isinstance(mark_end, (bool, np.bool_)):
+            raise ValueError(f"mark_end must be True or False, got {mark_end!r}")
+        self.mark_end = bool(mark_end)
+        self.rules = task.EpisodeRules(reward, float(success_tol), int(max_steps), float(success_bonus),
+                                       float(step_penalty), on_exit, float(exit_penalty), tuple(p.workspace))
+        self.num_envs = int(num_envs)
+        self.obs_type, self.action_type = obs_type, action_type
+        self.image_size, self.view_size = int(image_size), float(view_size)
+        self.sim = Simulator(p, device=device, dtype=dtype, backend=backend)
+        self.device, self.dtype = self.sim.device, dtype
+        self._named = {name: target_shape(name, p, self.device, dtype) for name in TARGET_NAMES}
+        self.start = None if start is None else self._check_start(start)
+        self.action_dim = ACTION_DIMS[action_type]
+        self.single_action_space = spaces.Box(0.0, 1.0, (self.action_dim,), np.float32)
+        self.single_observation_space = task.observation_space(obs_type, p, self.image_size)
+
+        n, b, kw = p.n_nodes, self.num_envs, dict(device=self.device, dtype=dtype)
+        self._state = EnvState(
+            pos=torch.zeros(b, n, 2, **kw), target=torch.zeros(b, n, 2, **kw),
+            steps=torch.zeros(b, dtype=torch.int64, device=self.device),
+            info={"shape_error": torch.zeros(b, **kw), "orientation_error": torch.zeros(b, **kw),
+                  "is_success": torch.zeros(b, dtype=torch.bool, device=self.device),
+                  "node": torch.full((b,), -1, dtype=torch.int64, device=self.device),
+                  "substeps": torch.zeros(b, dtype=torch.int64, device=self.device)},
+            target_names=[task.CUSTOM] * b, target_spec=task.resolve_target(target, p, self.device, dtype),
+            rngs=[None] * b, needs_reset=torch.zeros(b, dtype=torch.bool))
+        self._pictures: task.TargetPictures | None = None     # the targets' image layers, drawn once per episode
+        self.has_reset = False
+
+    # ----------------------------------------------------------------- configuration and state
+    @property
+    def max_steps(self) -> int:
+        return self.rules.max_steps
+
+    @property
+    def success_tol(self) -> float:
+        return self.rules.success_tol
+
+    @property
+    def reward_type(self) -> str:
+        return self.rules.reward
+
+    def _check_start(self, start: Any) -> torch.Tensor:
+        s = torch.as_tensor(np.load(start) if isinstance(start, (str, Path)) else np.asarray(start))
+        if tuple(s.shape) != (self.params.n_nodes, 2):
+            raise ValueError(f"start shape must be ({self.params.n_nodes}, 2), got {tuple(s.shape)}")
+        return s.to(device=self.device, dtype=self.dtype)
+
+    def set_target(self, spec: Any) -> None:
+        """Draw the targets of later resets from ``spec`` (any ``target`` argument). Raises TargetError."""
+        self._state.target_spec = task.resolve_target(spec, self.params, self.device, self.dtype)
+
+    def get_state(self) -> EnvState:
+        """A copy of the env's state (changing it changes nothing until ``set_state``)."""
+        return self._state.clone()
+
+    def set_state(self, state: EnvState | None = None, *, pos: Any = None, target: Any = None,
+                  steps: Any = None) -> None:
+        """Write a state (from ``get_state``), or overwrite only ropes (B, N, 2), targets ((N, 2) or (B, N, 2)) and/or
+        step counters (B,) of the current one; the per-rope figures (info) are recomputed from the ropes and
+        targets. The env's only way in: planners and tests place ropes with it."""
+        kw = dict(device=self.device, dtype=self.dtype)
+        s = self._state.clone() if state is None else state.clone()
+        b, n = self.num_envs, self.params.n_nodes
+        if pos is not None:
+            s.pos = torch.as_tensor(pos, **kw).detach().clone()
+        if target is not None:
+            s.target = torch.as_tensor(target, **kw).detach().expand(b, n, 2).clone()
+            s.target_names = [task.CUSTOM] * b
+        if steps is not None:
+            s.steps = torch.as_tensor(steps, dtype=torch.int64, device=self.device).expand(b).clone()
+        s.pos, s.target = s.pos.to(**kw), s.target.to(**kw)
+        self.sim._check_state("pos", s.pos)
+        if s.pos.shape != (b, n, 2) or s.target.shape != (b, n, 2):
+            raise ValueError(f"pos and target must have shape ({b}, {n}, 2), got {tuple(s.pos.shape)} and "
+                             f"{tuple(s.target.shape)}")
+        s.steps, s.needs_reset = s.steps.to(self.device), s.needs_reset.cpu()
+        s.info = {k: v.to(self.device) for k, v in s.info.items()}
+        if state is None:
+            s.info.update(task.task_metrics(s.pos, s.target, self.success_tol))
+        self._state = s
+        self._pictures = None
+        self.has_reset = True
+
+    def _mask(self, mask: Any) -> torch.Tensor:
+        if mask is None:
+            return torch.ones(self.num_envs, dtype=torch.bool)
+        m = torch.as_tensor(np.asarray(mask.cpu() if torch.is_tensor(mask) else mask)).to(torch.bool).cpu()
+        if m.shape != (self.num_envs,):
+            raise ValueError(f"mask must have shape ({self.num_envs},), got {tuple(m.shape)}")
+        return m
+
+    # ----------------------------------------------------------------- episode control
+    def seed(self, seed: int | Sequence[int | np.random.Generator | None] | None, mask: Any = None) -> None:
+        """Re-seed the per-env generators: an int s gives env i the generator of seed s + i (gymnasium's rule); a
+        per-env list holds seeds, None (fresh entropy) or generators to draw from (the single env's np_random)."""
+        rngs = self._state.rngs
+        for i in self._mask(mask).nonzero().flatten().tolist():
+            if seed is None:
+                rngs[i] = seeding.np_random(None)[0]
+            elif isinstance(seed, (int, np.integer)):
+                rngs[i] = seeding.np_random(int(seed) + i)[0]
+            elif isinstance(seed[i], np.random.Generator):
+                rngs[i] = seed[i]
+            else:
+                rngs[i] = seeding.np_random(None if seed[i] is None else int(seed[i]))[0]
+
+    def reset(self, seed: int | Sequence[int | None] | None = None, options: dict | None = None,
+              mask: Any = None) -> tuple[Any, dict[str, torch.Tensor]]:
+        """Reset the envs in ``mask`` (default all): new target, random start shape, settle (thesis model.free).
+
+        ``seed``: int s (env i gets s + i), a per-env list, or None (keep each env's generator; a fresh random one
+        the first time). ``options={"target": spec}`` changes the target spec (kept for later resets).
+        Returns (obs, info) for the whole batch.
+        """
+        m = self._mask(mask)
+        if options and "target" in options:
+            self.set_target(options["target"])
+        if seed is not None:
+            self.seed(seed, m)
+        idx = m.nonzero().flatten().tolist()
+        if idx:
+            self._reset_ropes(idx)
+        self.has_reset = True
+        return self.observe(), self.info()
+
+    def _reset_ropes(self, idx: list[int]) -> None:
+        s = self._state
+        shapes, targets = [], []
+        for i in idx:
+            if s.rngs[i] is None:
+                s.rngs[i] = seeding.np_random(None)[0]
+            rng = s.rngs[i]
+            tgt, s.target_names[i] = task.draw_target(s.target_spec, rng, self.params, self._named, self.device,
+                                                      self.dtype, self.curve_max_turn_deg)
+            targets.append(tgt)
+            gen = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))   # drawn even for a fixed start
+            if self.start is None:
+                shapes.append(self.sim.random_shape(1, generator=gen))
+        ids = torch.tensor(idx, device=self.device)
+        if self.start is None:
+            start, settle_info = self.sim.settle(torch.cat(shapes), return_info=True)
+            substeps = settle_info.substeps
+        else:
+            start = self.start.expand(len(idx), *self.start.shape)
+            substeps = torch.zeros(len(idx), dtype=torch.int64)
+        s.pos[ids] = start
+        s.target[ids] = torch.stack(targets)
+        s.steps[ids] = 0
+        s.needs_reset[ids.cpu()] = False
+        self._update_info(ids, start, s.target[ids], torch.full((len(idx),), -1, dtype=torch.int64), substeps)
+        if self._pictures is not None:
+            fresh = task.target_pictures(s.target[ids], self.image_size, self.view_size, self.mark_end)
+            self._pictures.coverage[ids] = fresh.coverage
+            if fresh.end is not None:
+                self._pictures.end[ids] = fresh.end
+
+    def decode(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, A) clipped actions in [0, 1] (sim dtype) -> grasped node (B,) int64 and drag (B, 2) [m]."""
+        return task.decode_action(self.action_type, actions, self._state.pos, self.params, self.view_size)
+
+    def step(self, actions: Any, mask: Any = None, autoreset: str | None = None
+             ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Apply (B, A) actions to the envs in ``mask`` (default all) with ONE batched ``Simulator.move``.
+
+        Actions are clipped to [0, 1]; NaN/inf or a wrong shape raise ValueError. Envs outside the mask keep their
+        state and get reward 0, terminated = truncated = False. Returns (obs, reward (B,), terminated (B,) bool,
+        truncated (B,) bool, info) as tensors on the device.
+        ``autoreset``: None (never reset), "next_step" (gymnasium's default: a rope whose episode ended is reset by
+        its NEXT step, which ignores its action and returns the new episode's first observation with reward 0 and
+        terminated = truncated = False) or "same_step" (ropes whose episode ends are reset at once: ``obs`` is
+        the new episodes' first observation; ``info`` is the step's, with ``info["final_obs"]`` the observation the
+        step produced).
+        """
+        if not self.has_reset:
+            raise RuntimeError("call reset() before step()")
+        if autoreset not in AUTORESET_MODES:
+            raise _choice_error("autoreset", autoreset, AUTORESET_MODES)
+        a = check_actions(actions, (self.num_envs, self.action_dim))
+        a = a.clamp(0.0, 1.0).to(device=self.device, dtype=self.dtype)
+        m = self._mask(mask)
+        pending = self._state.needs_reset.clone() if autoreset == "next_step" else torch.zeros_like(m)
+        reward = torch.zeros(self.num_envs, device=self.device, dtype=self.dtype)
+        terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        truncated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        idx = (m & ~pending).nonzero().flatten().tolist()
+        if idx:
+            s, ids = self._state, torch.tensor(idx, device=self.device)
+            node, delta = self.decode(a)
+            prev, target = s.pos[ids], s.target[ids]
+            new, move_info = self.sim.move(prev, node[ids], delta[ids], return_info=True)
+            s.pos[ids] = new
+            s.steps[ids] += 1
+            self._update_info(ids, new, target, node[ids], move_info.substeps)
+            r, term, trunc, _ = task.step_outcome(self.rules, prev, new, target, s.steps[ids])
+            reward[ids], terminated[ids], truncated[ids] = r, term, trunc
+        ended = (terminated | truncated).cpu()
+        if autoreset == "next_step":
+            if bool(pending.any()):
+                self._reset_ropes(pending.nonzero().flatten().tolist())
+            self._state.needs_reset = ended | (pending & ~m)
+            return self.observe(), reward, terminated, truncated, self.info()
+        obs, info = self.observe(), self.info()
+        if autoreset == "same_step":
+            info["final_obs"] = obs                    # the step's observation and info, before any reset
+            if bool(ended.any()):
+                self._reset_ropes(ended.nonzero().flatten().tolist())
+                obs = self.observe()
+        return obs, reward, terminated, truncated, info
+
+    def _update_info(self, ids, pos, target, node, substeps) -> None:
+        info = self._state.info
+        for k, v in task.task_metrics(pos, target, self.success_tol).items():
+            info[k][ids] = v
+        info["node"][ids] = node.to(self.device)
+        info["substeps"][ids] = substeps.to(self.device)
+
+    # ----------------------------------------------------------------- observations
+    def info(self) -> dict[str, torch.Tensor]:
+        """Per-env info tensors (B,): shape_error [m], orientation_error [rad], is_success, node (-1 after a reset),
+        substeps (of the last move, or of the settle after a reset)."""
+        return {k: v.clone() for k, v in self._state.info.items()}
+
+    def render_images(self, ropes: torch.Tensor | None, targets: torch.Tensor | None,
+                      size: int | None = None) -> torch.Tensor:
+        return rimage.render_ropes(None if ropes is None else ropes.detach(),
+                                   None if targets is None else targets.detach(),
+                                   size=size or self.image_size, view_size=self.view_size)
+
+    def observe(self) -> Any:
+        """The current observation of every env (diffdlo.task.observe): a dict of (B, ...) tensors, or a (B, N, 2)
+        tensor for obs_type="distance"."""
+        s = self._state
+        if self.obs_type in ("image", "image_single") and self._pictures is None:
+            self._pictures = task.target_pictures(s.target, self.image_size, self.view_size, self.mark_end)
+        return task.observe(self.obs_type, s.pos, s.target, self.image_size, self.view_size, self._pictures)
+
+    def render(self, size: int = RENDER_SIZE) -> torch.Tensor:
+        """(B, size, size, 3) uint8 pictures of the ropes (red) over their targets (blue), for people."""
+        return self.render_images(self._state.pos, self._state.target, size)

@@ -1,0 +1,233 @@
+"""The shape-control task's rules (thesis Chapter 2), each written once, as batched functions of tensors.
+
+Everything that says what the task IS lives here; the env (diffdlo/envs), the planners, PlaNet and the learners
+call these functions rather than restating them:
+
+- targets: ``resolve_target`` (a name, an (N, 2) array, a .npy/.yaml file or a family drawn anew per episode) and
+  ``draw_target`` (one episode's target from that episode's generator);
+- actions: ``decode_node`` / ``decode_drag`` / ``encode_node_action`` (the node action, eq 2.6),
+  ``decode_pixel_node`` (the pixel action, eq 2.5), ``decode_action`` (either);
+- the greedy move (the node farthest from its place, dragged towards it): ``greedy_drags``;
+- rewards, success and episode end: ``EpisodeRules`` and ``step_outcome`` (the rewards themselves are in
+  diffdlo/rewards.py, eq 2.7-2.11);
+- observations: ``observation_space`` and ``observe``.
+
+A new target family, reward, action head or observation is an addition here.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from . import image as rimage
+from .params import CableParams
+from .rewards import orientation_error, reward as move_reward, shape_error
+from .shapes import (CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape)
+
+OBS_TYPES = ("points", "distance", "image", "image_single")
+ACTION_TYPES = ("node", "pixel")
+ACTION_DIMS = {"node": 3, "pixel": 4}
+EXIT_RULES = ("truncate", "fail")
+CUSTOM = "custom"       # the label of a target given as an array or a file
+
+
+# ====================================================================== targets
+def resolve_target(spec: Any, p: CableParams, device: torch.device | str = "cpu",
+                   dtype: torch.dtype = torch.float32) -> str | torch.Tensor:
+    """A family in TARGET_FAMILIES (returned as is: drawn per episode by ``draw_target``) or a fixed target as an
+    (N, 2) tensor (a name in TARGET_NAMES, an (N, 2) array/tensor, or a .npy/.yaml path). Raises TargetError."""
+    if isinstance(spec, str) and spec in TARGET_FAMILIES:
+        return spec
+    try:
+        return target_shape(spec, p, device, dtype)
+    except TargetError as exc:
+        raise TargetError(f"bad target {spec if isinstance(spec, (str, Path)) else type(spec).__name__!r}: "
+                          f"{exc} (allowed: {list(TARGET_FAMILIES)}, {list(TARGET_NAMES)}, an (N, 2) array or a "
+                          f".npy/.yaml path)") from exc
+
+
+def target_label(spec: Any) -> str:
+    """The name of a target spec as a person reads it: a name or family as is, a file by its stem, else "custom"."""
+    if isinstance(spec, str) and (spec in TARGET_NAMES or spec in TARGET_FAMILIES):
+        return spec
+    if isinstance(spec, (str, Path)) and str(spec).endswith((".npy", ".yaml", ".yml")):
+        return Path(spec).stem
+    return CUSTOM
+
+
+def draw_target(spec: str | torch.Tensor, rng: np.random.Generator, p: CableParams,
+                named: dict[str, torch.Tensor], device: torch.device | str = "cpu",
+                dtype: torch.dtype = torch.float32,
+                curve_max_turn_deg: float = CURVE_MAX_TURN_DEG) -> tuple[torch.Tensor, str]:
+    """One episode's target (N, 2) and its name, for a resolved spec. ``"random"``: one of the named straight
+    targets (``named``: name -> (N, 2)), uniformly (the thesis's task); ``"random_curve"``: a smooth random curve
+    (diffdlo.shapes.random_curve); a fixed (N, 2) target: itself, named "custom" (or its name when it is one of
+    ``named``). Draws from ``rng`` (the episode's generator) only for a family."""
+    if isinstance(spec, str) and spec == "random":
+        name = TARGET_NAMES[int(rng.integers(len(TARGET_NAMES)))]
+        return named[name], name
+    if isinstance(spec, str):                                                     # "random_curve"
+        curve_gen = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))
+        return random_curve(1, p, curve_gen, device, dtype, curve_max_turn_deg)[0], spec
+    name = next((n for n, t in named.items() if t.shape == spec.shape and bool(torch.equal(t, spec))), CUSTOM)
+    return spec, name
+
+
+# ====================================================================== actions (eq 2.5, 2.6)
+def decode_node(a0: torch.Tensor, n_nodes: int) -> torch.Tensor:
+    """Eq 2.6's node: round(a0 (N - 1)) with a0 clipped to [0, 1] -> int64 node ids (no gradient)."""
+    return torch.round(a0.detach().clamp(0.0, 1.0) * (n_nodes - 1)).to(torch.int64)
+
+
+def decode_drag(a: torch.Tensor, scale: float) -> torch.Tensor:
+    """Eq 2.6's drag: a 2 s - s for a in [0, 1] (already clipped), i.e. [-s, s] per axis. Differentiable.
+    ``scale`` 1 gives the drag in units of action_scale (the learners' hybrid head)."""
+    return a * (2 * scale) - scale
+
+
+def encode_node_action(node: torch.Tensor, drag: torch.Tensor, n_nodes: int, scale: float) -> torch.Tensor:
+    """The inverse of eq 2.6: node ids (...,) and drags (..., 2) in [-scale, scale] (clipped) -> (..., 3) node
+    actions in [0, 1] that decode to that node and drag."""
+    a0 = node.to(drag.dtype) / (n_nodes - 1)
+    return torch.cat([a0.unsqueeze(-1), ((drag + scale) / (2 * scale)).clamp(0.0, 1.0)], dim=-1)
+
+
+def decode_node_action(actions: torch.Tensor, p: CableParams) -> tuple[torch.Tensor, torch.Tensor]:
+    """(..., 3) node actions (clipped to [0, 1]) -> node (...,) int64 and drag (..., 2) [m]; differentiable with
+    respect to the drag part."""
+    a = actions.clamp(0.0, 1.0)
+    return decode_node(a[..., 0], p.n_nodes), decode_drag(a[..., 1:], p.action_scale)
+
+
+def decode_pixel_node(point: torch.Tensor, pos: torch.Tensor, view_size: float) -> torch.Tensor:
+    """Eq 2.5's node: (B, 2) (column, row) fractions of the square view window (side ``view_size`` m, centred at
+    the origin, row 0 at the top) -> the node of ``pos`` (B, N, 2) nearest to that point (B,)."""
+    h = view_size / 2
+    xy = torch.stack([point[:, 0] * view_size - h, h - point[:, 1] * view_size], dim=-1)
+    return (pos - xy.unsqueeze(1)).norm(dim=-1).argmin(dim=1)
+
+
+def decode_action(action_type: str, actions: torch.Tensor, pos: torch.Tensor, p: CableParams,
+                  view_size: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, A) actions clipped to [0, 1] -> grasped node (B,) int64 and drag (B, 2) [m], for either action type."""
+    delta = decode_drag(actions[:, -2:], p.action_scale)
+    if action_type == "node":
+        return decode_node(actions[:, 0], p.n_nodes), delta
+    return decode_pixel_node(actions[:, :2], pos, view_size), delta
+
+
+def greedy_drags(pos: torch.Tensor, target: torch.Tensor, max_disp: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The greedy move's ingredients for rope(s) (..., N, 2): every node's gap to its place in the target moved onto
+    the rope's centroid, capped at ``max_disp`` in length (..., N, 2), and the uncapped gap lengths (..., N). The
+    greedy move drags the node with the largest gap by its capped gap."""
+    aligned = target - target.mean(-2, keepdim=True) + pos.mean(-2, keepdim=True)
+    gap = aligned - pos
+    dist = gap.norm(dim=-1)
+    return gap * (max_disp / dist.clamp_min(1e-12)).clamp(max=1.0).unsqueeze(-1), dist
+
+
+# ====================================================================== rewards, success, episode end
+@dataclasses.dataclass(frozen=True)
+class EpisodeRules:
+    """How a move is scored and when an episode ends (thesis Algorithm 2 with the error metric; the options after
+    ``max_steps`` are ours, off by default). See ``step_outcome``."""
+    reward: str = "position_orientation"
+    success_tol: float = 0.01
+    max_steps: int = 100
+    success_bonus: float = 20.0
+    step_penalty: float = 0.0
+    on_exit: str = "truncate"
+    exit_penalty: float = 0.0
+    workspace: tuple[float, float] = (2.0, 2.0)
+
+
+def step_outcome(rules: EpisodeRules, prev: torch.Tensor, new: torch.Tensor, target: torch.Tensor,
+                 steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Score the moves prev -> new (B, N, 2) towards ``target`` after ``steps`` (B,) moves (this one included).
+
+    Returns (reward, terminated, truncated, success), each (B,). Success: shape_error < success_tol; it
+    terminates with reward success_bonus. A node outside the workspace rectangle (centred at the origin) truncates
+    the episode (on_exit "truncate", Algorithm 2) or terminates it with reward -exit_penalty (on_exit "fail");
+    reaching max_steps truncates. Every other move gets the named reward minus step_penalty.
+    """
+    r = move_reward(rules.reward, prev, new, target)
+    success = shape_error(new, target) < rules.success_tol
+    half = torch.tensor(rules.workspace, device=new.device, dtype=new.dtype) / 2
+    outside = (new.abs() > half).flatten(1).any(1) & ~success
+    failed = outside if rules.on_exit == "fail" else torch.zeros_like(outside)
+    terminated = success | failed
+    truncated = ~terminated & ((steps >= rules.max_steps) | outside)
+    r = torch.where(success, torch.full_like(r, rules.success_bonus), r - rules.step_penalty)
+    return torch.where(failed, torch.full_like(r, -rules.exit_penalty), r), terminated, truncated, success
+
+
+def task_metrics(pos: torch.Tensor, target: torch.Tensor, success_tol: float) -> dict[str, torch.Tensor]:
+    """The per-rope figures an env reports after every reset and move: shape_error [m], orientation_error [rad],
+    is_success."""
+    err = shape_error(pos, target)
+    return {"shape_error": err.detach(), "orientation_error": orientation_error(pos, target).detach(),
+            "is_success": err < success_tol}
+
+
+# ====================================================================== observations
+def observation_space(obs_type: str, p: CableParams, image_size: int) -> spaces.Space:
+    """The gymnasium space of one rope's observation of type ``obs_type`` (see ``observe``)."""
+    # Bounds of a node coordinate [m]: every node is inside the workspace before a step (else the episode has
+    # ended) and a step moves the grasped node by at most max_disp, the rest following within the rope length.
+    n, s = p.n_nodes, image_size
+    bound = np.float32(max(p.workspace) / 2 + p.length + p.max_disp)
+    points = spaces.Box(-bound, bound, (n, 2), np.float32)
+    img = spaces.Box(0, 255, (s, s, 3), np.uint8)
+    if obs_type == "points":
+        return spaces.Dict({"node_poses": points, "target_poses": points})
+    if obs_type == "distance":
+        return spaces.Box(-2 * bound, 2 * bound, (n, 2), np.float32)
+    if obs_type == "image":
+        return spaces.Dict({"image": img, "target_image": img})
+    return spaces.Dict({"image": img})
+
+
+@dataclasses.dataclass
+class TargetPictures:
+    """The target's layers of an image observation, drawn once per episode: coverage (B, S, S) and, with mark_end,
+    the dot on its node 0."""
+    coverage: torch.Tensor
+    end: torch.Tensor | None = None
+
+
+def target_pictures(target: torch.Tensor, image_size: int, view_size: float, mark_end: bool) -> TargetPictures:
+    t = target.detach()
+    return TargetPictures(rimage.coverage(t, image_size, view_size),
+                          rimage.end_marker(t, image_size, view_size) if mark_end else None)
+
+
+def observe(obs_type: str, pos: torch.Tensor, target: torch.Tensor, image_size: int = 64, view_size: float = 1.0,
+            pictures: TargetPictures | None = None) -> Any:
+    """The observation of ropes ``pos`` (B, N, 2) with targets (B, N, 2):
+
+    "points": {node_poses, target_poses} (B, N, 2) float32 (the multi-input observation); "distance": rope - target
+    (B, N, 2) float32 (the single-input one); "image": {image, target_image} (B, S, S, 3) uint8 pictures of the rope
+    and of the target; "image_single": {image}, the rope drawn over the target. ``pictures``: the target's layers
+    (``target_pictures``, cached per episode by the env; drawn here when None); their ``end`` layer also marks the
+    rope's node 0.
+    """
+    pos, target = pos.detach(), target.detach()
+    if obs_type == "points":
+        return {"node_poses": pos.to(torch.float32, copy=True), "target_poses": target.to(torch.float32, copy=True)}
+    if obs_type == "distance":
+        return (pos - target).to(torch.float32)
+    if pictures is None:
+        pictures = target_pictures(target, image_size, view_size, mark_end=False)
+    rope = [(rimage.coverage(pos, image_size, view_size), rimage.ROPE_COLOR)]
+    tgt = [(pictures.coverage, rimage.TARGET_COLOR)]
+    if pictures.end is not None:
+        rope.append((rimage.end_marker(pos, image_size, view_size), rimage.ROPE_END_COLOR))
+        tgt.append((pictures.end, rimage.TARGET_END_COLOR))
+    if obs_type == "image":
+        return {"image": rimage.compose(rope), "target_image": rimage.compose(tgt)}
+    return {"image": rimage.compose(tgt + rope)}
