@@ -16,8 +16,7 @@ seeds 10000 + i with the deterministic policy. Needs the [dev] extra (SB3).
 """
 from __future__ import annotations
 
-import argparse
-import json
+import sys
 import time
 from pathlib import Path
 
@@ -25,12 +24,15 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # run as a script: the repository root
+
 import diffdlo
 from agents.config import load_config, preset_path
 from agents.envs import make_env
 from agents.evaluation import evaluate
 from agents.hybrid import relative_features
 from agents.ppo import PPOConfig
+from benchmarks import sb3_common
 from diffdlo.envs import BatchedShapeControl
 
 try:
@@ -97,15 +99,7 @@ class BatchedVecEnv(VecEnv):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--total-steps", type=int, default=1_000_000)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--target", default="random")
-    parser.add_argument("--eval-episodes", type=int, default=100)
-    parser.add_argument("--eval-seed", type=int, default=10_000)
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", default="runs/sb3-ppo")
-    args = parser.parse_args()
+    args = sb3_common.parser(__doc__, total_steps=1_000_000, eval_episodes=100, out="runs/sb3-ppo").parse_args()
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
@@ -137,16 +131,12 @@ def main() -> None:
         return (torch.as_tensor(np.asarray(action), dtype=torch.float64).clamp(-1, 1) + 1) / 2
 
     result = evaluate(policy, make_core(cfg, min(args.eval_episodes, 32)), args.eval_episodes, seed=args.eval_seed)
-    record = {"method": "sb3_ppo", "target": args.target, "seed": args.seed, "success_rate": result["success_rate"],
-              "episodes": [{k: e[k] for k in ("success", "steps", "final_error")} for e in result["episodes"]],
-              "env_steps": int(model.num_timesteps), "wall_s": time.perf_counter() - t0, "train_s": train_s,
-              "mean_final_error": result["mean_final_error"],
-              "sb3_version": __import__("stable_baselines3").__version__, "diffdlo_version": diffdlo.__version__}
-    (out / "results.json").write_text(json.dumps(record, indent=2))
+    path = sb3_common.write_record(out, "sb3_ppo", args, result, env_steps=int(model.num_timesteps),
+                                   wall_s=time.perf_counter() - t0, train_s=train_s)
     moves = [e["steps"] for e in result["episodes"] if e["success"]]
     print(f"sb3 PPO: {model.num_timesteps} steps in {train_s:.0f} s; eval success {result['success_rate']:.2f}, "
           f"moves to success {np.mean(moves) if moves else float('nan'):.1f}, mean final error "
-          f"{result['mean_final_error'] * 100:.2f} cm -> {out / 'results.json'}")
+          f"{result['mean_final_error'] * 100:.2f} cm -> {path}")
 
 
 if __name__ == "__main__":

@@ -11,8 +11,7 @@ Writes ``results.json`` (the fields every method writes, method "sb3_sac") and p
 """
 from __future__ import annotations
 
-import argparse
-import json
+import sys
 import time
 from pathlib import Path
 
@@ -20,22 +19,17 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import diffdlo
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # run as a script: the repository root
+
 from agents.evaluation import evaluate
+from benchmarks import sb3_common
 from diffdlo.envs import ENV_ID, BatchedShapeControl
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--total-steps", type=int, default=20_000)
+    parser = sb3_common.parser(__doc__, total_steps=20_000, eval_episodes=50, out="runs/sb3-sac")
     parser.add_argument("--num-envs", type=int, default=16)
     parser.add_argument("--gradient-steps", type=int, default=None, help="updates per vector step (default: num_envs)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--target", default="random")
-    parser.add_argument("--eval-episodes", type=int, default=50)
-    parser.add_argument("--eval-seed", type=int, default=10_000)
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", default="runs/sb3-sac")
     args = parser.parse_args()
     try:
         from stable_baselines3 import SAC
@@ -62,16 +56,12 @@ def main() -> None:
     eval_env = BatchedShapeControl(num_envs=min(args.eval_episodes, 16), **kwargs)
     result = evaluate(policy, eval_env, args.eval_episodes, deterministic=True, seed=args.eval_seed)
     wall = time.perf_counter() - t0
-    record = {"method": "sb3_sac", "target": args.target, "seed": args.seed, "success_rate": result["success_rate"],
-              "episodes": [{k: e[k] for k in ("success", "steps", "final_error")} for e in result["episodes"]],
-              "env_steps": args.total_steps, "wall_s": wall, "train_s": train_s,
-              "mean_reward": result["mean_reward"], "mean_final_error": result["mean_final_error"],
-              "gradient_steps": args.gradient_steps or args.num_envs, "num_envs": args.num_envs,
-              "sb3_version": __import__("stable_baselines3").__version__, "diffdlo_version": diffdlo.__version__}
-    (out / "results.json").write_text(json.dumps(record, indent=2))
+    path = sb3_common.write_record(out, "sb3_sac", args, result, env_steps=args.total_steps, wall_s=wall,
+                                   train_s=train_s, mean_reward=result["mean_reward"],
+                                   gradient_steps=args.gradient_steps or args.num_envs, num_envs=args.num_envs)
     print(f"sb3 SAC: {args.total_steps} steps in {train_s:.0f} s; eval success {result['success_rate']:.2f}, "
           f"mean final error {result['mean_final_error'] * 100:.1f} cm, mean reward {result['mean_reward']:.0f} "
-          f"-> {out / 'results.json'}")
+          f"-> {path}")
 
 
 if __name__ == "__main__":
