@@ -16,11 +16,11 @@ CONTROLLERS = ("kinematic", "pid")
 _LAYOUT = {
     "model": {
         "n_nodes": "n_nodes", "length": "length", "mass": "mass", "k_s": "k_s", "k_b": "k_b",
-        "k_d": "k_d", "dt": "dt", "k_f": "k_f",
+        "k_d": "k_d", "dt": "dt",
     },
     "controller": {
         "type": "controller", "max_speed": "max_speed", "max_disp": "max_disp", "max_steps": "max_drag_steps",
-        "k_p": "k_p", "k_i": "k_i", "k_ff": "k_ff", "ff_len": "ff_len", "ff_dt": "ff_dt",
+        "k_p": "k_p", "k_i": "k_i", "k_ff": "k_ff", "ff_len": "ff_len",
     },
     "settle": {
         "threshold": "settle_threshold", "check_every": "settle_check_every",
@@ -30,6 +30,15 @@ _LAYOUT = {
         "sigma": "sigma", "action_scale": "action_scale", "workspace": "workspace",
         "max_steps": "max_episode_steps", "success_tol": "success_tol", "success_bonus": "success_bonus",
     },
+}
+
+# Keys that older files carry but that never drove anything: a file that still has one is rejected with this
+# reason, so its author learns the value was ignored (params/cable.yaml keeps the thesis's numbers in prose).
+# Each was also a dataclass field of the same name.
+_REMOVED = {
+    ("model", "k_f"): "the thesis's Table 2.1 K_f has no term in the planar model (eq 2.1-2.3), so nothing read it",
+    ("controller", "ff_dt"): "the PID's force profile is evaluated at every integrator substep dt, so nothing "
+                             "read it",
 }
 
 
@@ -49,7 +58,6 @@ class CableParams:
     k_b: float
     k_d: float
     dt: float
-    k_f: float
     # controller (Chapter 2 §1)
     controller: str
     max_speed: float
@@ -59,7 +67,6 @@ class CableParams:
     k_i: float
     k_ff: float
     ff_len: float
-    ff_dt: float
     # free evolution (Algorithms 1-3)
     settle_threshold: float
     settle_check_every: int
@@ -129,7 +136,7 @@ def validate(p: CableParams) -> None:
                  "action_scale", "success_tol"):
         if getattr(p, name) <= 0:
             raise ParamsError(f"cable parameter {name!r} must be positive, got {getattr(p, name)!r}")
-    for name in ("k_s", "k_b", "k_d", "k_f", "k_p", "k_i", "k_ff", "ff_len", "ff_dt", "settle_threshold",
+    for name in ("k_s", "k_b", "k_d", "k_p", "k_i", "k_ff", "ff_len", "settle_threshold",
                  "settle_max_substeps", "sigma", "success_bonus", "max_episode_steps"):
         if getattr(p, name) < 0:
             raise ParamsError(f"cable parameter {name!r} must not be negative, got {getattr(p, name)!r}")
@@ -170,12 +177,19 @@ def load_params(name_or_path: str | Path = "cable", **overrides: Any) -> CablePa
                 raise ParamsError(f"{path}: missing field '{section}.{key}'")
             values[field] = block[key]
         unknown = set(block) - set(keys)
+        for key in sorted(unknown):
+            if (section, key) in _REMOVED:
+                raise ParamsError(f"{path}: field '{section}.{key}' was removed because it did nothing "
+                                  f"({_REMOVED[section, key]}); delete it from the file")
         if unknown:
             raise ParamsError(f"{path}: unknown field(s) in section {section!r}: {sorted(unknown)}")
     unknown_sections = set(raw) - set(_LAYOUT)
     if unknown_sections:
         raise ParamsError(f"{path}: unknown section(s) {sorted(unknown_sections)}")
     bad = set(overrides) - {f.name for f in dataclasses.fields(CableParams)}
+    for (_, name), reason in _REMOVED.items():
+        if name in bad:
+            raise ParamsError(f"cable parameter {name!r} was removed because it did nothing ({reason})")
     if bad:
         raise ParamsError(f"unknown cable parameter override(s) {sorted(bad)}")
     values.update(overrides)

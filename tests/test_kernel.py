@@ -14,6 +14,25 @@ pytestmark = pytest.mark.skipif(not kernel.available(), reason=f"kernel unavaila
 MIXED = (kernel.lanes() + 3) if kernel.available() else 19
 
 
+def short(p, **changes):
+    """Fewer substeps, same phases: a drag takes at most 334 substeps (0.3 m/s), the settle is checked every 50
+    substeps up to 300, and its 0.02 m/s threshold stops some ropes early while others reach the cap."""
+    return dataclasses.replace(p, max_speed=0.3, settle_threshold=0.02, settle_check_every=50,
+                               settle_max_substeps=300, **changes)
+
+
+def assert_mixed_settle(p, *infos):
+    """Over the moves' infos, some ropes stop early and some reach the cap, both in the vectorized lane group and
+    on the per-rope path."""
+    lanes = kernel.lanes()
+    settled = torch.stack([info.settled for info in infos])
+    steps = torch.stack([info.settle_substeps for info in infos])
+    for part in (slice(0, lanes), slice(lanes, None)):
+        done, n = settled[:, part], steps[:, part]
+        assert (n[~done] == p.settle_max_substeps).all() and (~done).any(), f"settled: {settled}"
+        assert (n[done] < p.settle_max_substeps).any(), f"settle substeps: {steps}"
+
+
 def pair(p, dtype=torch.float64):
     return (diffdlo.Simulator(p, dtype=dtype, backend="torch"), diffdlo.Simulator(p, dtype=dtype, backend="kernel"))
 
@@ -28,7 +47,7 @@ def actions(batch, seed=0, scale=0.1, dtype=torch.float64):
 @pytest.mark.parametrize("variant", ["default", "fast_path"])
 def test_kernel_move_equals_reference_with_gradients(params, variant):
     # fast_path: a drag that would need more than max_drag_steps substeps goes faster than max_speed
-    p = params if variant == "default" else dataclasses.replace(params, max_drag_steps=300)
+    p = short(params) if variant == "default" else short(params, max_drag_steps=100)
     ref, fast = pair(p)
     # one lane group (vectorized across ropes) and 3 ropes on the per-rope path
     pos = crumpled(MIXED, params, sigma=0.3, seed=1)
@@ -42,11 +61,15 @@ def test_kernel_move_equals_reference_with_gradients(params, variant):
     torch.testing.assert_close(b, a, rtol=0, atol=1e-12)
     assert torch.equal(ia.drag_substeps, ib.drag_substeps) and torch.equal(ia.settle_substeps, ib.settle_substeps)
     assert torch.equal(ia.settled, ib.settled)
+    assert_mixed_settle(p, ia)
+    if variant == "fast_path":
+        assert (ia.drag_substeps == p.max_drag_steps).sum() > 1, "some drags must go faster than max_speed"
     target = diffdlo.target_shape("antidiagonal", p, dtype=torch.float64)
     grads = []
     for sim in (ref, fast):
         x, d = pos.clone().requires_grad_(True), delta.clone().requires_grad_(True)
-        loss = diffdlo.shape_error(sim.move(x, node, d), target).sum() + sim.move(x, node, d)[:, 3].pow(2).sum()
+        moved = sim.move(x, node, d)
+        loss = diffdlo.shape_error(moved, target).sum() + moved[:, 3].pow(2).sum()
         grads.append(torch.autograd.grad(loss, (x, d)))
     for g_ref, g_fast in zip(*grads):
         assert g_ref.abs().max() > 1e-3
@@ -132,18 +155,21 @@ def test_backend_selection_and_fallback(params, monkeypatch):
 
 def test_gradient_of_a_move_sequence_equals_plain_autograd(params):
     """The memory-bounded gradient of several moves equals autograd through the eager loop."""
-    ref, fast = pair(params)
+    p = short(params)
+    ref, fast = pair(p)
     pos = crumpled(MIXED, params, sigma=0.3, seed=9)
     g = torch.Generator().manual_seed(10)
     nodes = [torch.randint(0, 20, (MIXED,), generator=g) for _ in range(3)]
     deltas = (torch.rand(3, MIXED, 2, generator=g, dtype=torch.float64) * 2 - 1) * 0.08
-    target = diffdlo.target_shape("vertical", params, dtype=torch.float64)
+    target = diffdlo.target_shape("vertical", p, dtype=torch.float64)
     grads = []
     for sim in (ref, fast):
         x0, d = pos.clone().requires_grad_(True), deltas.clone().requires_grad_(True)
-        x = x0
+        x, infos = x0, []
         for m in range(3):
-            x = sim.move(x, nodes[m], d[m])
+            x, info = sim.move(x, nodes[m], d[m], return_info=True)
+            infos.append(info)
+        assert_mixed_settle(p, *infos)
         grads.append(torch.autograd.grad(diffdlo.shape_error(x, target).sum(), (x0, d)))
     for g_ref, g_fast in zip(*grads):
         torch.testing.assert_close(g_fast, g_ref, rtol=1e-8, atol=1e-10)

@@ -65,6 +65,20 @@ def test_unknown_fields_files_and_overrides(tmp_path):
         diffdlo.load_params(bad)
 
 
+@pytest.mark.parametrize("section,key,value", [("model", "k_f", 0.05), ("controller", "ff_dt", 0.0005)])
+def test_removed_fields_are_rejected_with_the_reason(tmp_path, params, section, key, value):
+    """k_f and ff_dt drove nothing: an old file that still sets one fails and says so instead of being ignored."""
+    assert not hasattr(params, key)
+    path = write_variant(tmp_path, section, key, value)
+    with pytest.raises(ParamsError, match=rf"field '{section}\.{key}' was removed because it did nothing .*"
+                                          rf"delete it from the file"):
+        diffdlo.load_params(path)
+    with pytest.raises(ParamsError, match=rf"cable parameter '{key}' was removed because it did nothing"):
+        diffdlo.load_params("cable", **{key: value})
+    with pytest.raises(TypeError, match=key):
+        dataclasses.replace(params, **{key: value})
+
+
 def test_replace_validates_too(params):
     with pytest.raises(ParamsError, match=r"'k_s' must not be negative, got -1\.0"):
         dataclasses.replace(params, k_s=-1.0)

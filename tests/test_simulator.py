@@ -9,8 +9,10 @@ from conftest import crumpled
 
 
 def tiny_params(params, controller="kinematic"):
-    # 6 nodes, a 0.15 m drag at 1 m/s, fixed 30 settle substeps: small enough for gradcheck.
-    return dataclasses.replace(params, n_nodes=6, length=0.15, max_speed=1.0, controller=controller,
+    # 6 nodes, a 0.15 m drag at 1 m/s, fixed 30 settle substeps: small enough for gradcheck. The PID's 10 ms
+    # force profile (ff_len) holds the goal for 10 substeps and its feedforward ramp ends during the ~15-substep
+    # drag, so both parts of the ramp and the hold are in the gradient at a tenth of the default's 200 substeps.
+    return dataclasses.replace(params, n_nodes=6, length=0.15, max_speed=1.0, controller=controller, ff_len=0.01,
                                settle_threshold=0.0, settle_check_every=10, settle_max_substeps=30)
 
 
@@ -45,7 +47,11 @@ def test_gradcheck_short_move(params, controller):
     delta = torch.tensor([[0.0123, -0.0071], [-0.0043, 0.0091]], dtype=torch.float64, requires_grad=True)
     node = torch.tensor([0, 3])
     _, info = sim.move(pos.detach(), node, delta.detach(), return_info=True)
-    assert (info.drag_substeps > 0).all() and (info.settle_substeps == 30).all()
+    path = torch.tensor([15, 11])                     # ceil(|delta| / (1 m/s * 1 ms))
+    hold = 10 if controller == "pid" else 0
+    assert torch.equal(info.drag_substeps, path + hold) and (info.settle_substeps == 30).all()
+    if controller == "pid":
+        assert (path > p.ff_len / p.dt).all(), "the feedforward ramp must end during the drag"
     assert torch.autograd.gradcheck(lambda x, d: sim.move(x, node, d), (pos, delta), eps=1e-7, atol=1e-6,
                                     rtol=1e-4)
 
