@@ -236,7 +236,10 @@ class ReplayBuffer:
                               for k in self.obs}}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if state["capacity"] != self.capacity or state["n_envs"] != self.n_envs:
+        """Load a saved buffer of the same shape, or a smaller one that never wrapped around (a run resumed with a
+        larger budget: its buffer, sized to the first budget, grows and its rows keep their places)."""
+        grows = state["capacity"] < self.capacity and not state["full"]
+        if (state["capacity"] != self.capacity and not grows) or state["n_envs"] != self.n_envs:
             raise ValueError(f"buffer shape mismatch: saved ({state['capacity']}, {state['n_envs']}), "
                              f"this ({self.capacity}, {self.n_envs})")
         n = state["action"].shape[0]

@@ -14,12 +14,36 @@ import torch
 CHECKPOINT = "checkpoint.pt"
 
 
-def warn_if_large_buffer(rows: int, num_envs: int, obs: Any, limit: float = 4e9) -> None:
-    """Warn (stderr) when a replay buffer of rows x num_envs observations like ``obs`` would exceed ``limit`` bytes."""
+def available_memory() -> int | None:
+    """Bytes of memory free for a new allocation (Linux's MemAvailable), or None where it cannot be read."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def replay_rows(buffer_size: int, total_steps: int, num_envs: int, obs: Any, least: int = 2,
+                free: int | None = None) -> int:
+    """Rows of a replay buffer for a run: ``buffer_size`` transitions, but never more rows than the run can fill
+    (total_steps / num_envs plus one), at least ``least``. Image observations: the size is printed; a buffer that
+    would not fit in free memory is refused with a ValueError saying how big it is and what to lower."""
+    rows = max(least, min(buffer_size // num_envs, -(-total_steps // num_envs) + 1))
     obs_bytes = sum(v[0].numel() * v.element_size() for v in (obs.values() if isinstance(obs, dict) else [obs]))
-    if rows * num_envs * obs_bytes > limit:
-        print(f"warning: the replay buffer will hold {rows * num_envs * obs_bytes / 1e9:.1f} GB of observations; "
-              f"lower it with --set buffer_size=N (images: 64x64 pairs are 24.6 kB each)", file=sys.stderr)
+    total = rows * num_envs * obs_bytes
+    images = any(not v.is_floating_point() for v in (obs.values() if isinstance(obs, dict) else [obs]))
+    if images:
+        print(f"replay buffer: {rows} rows x {num_envs} envs x {obs_bytes / 1e3:.1f} kB of observations = "
+              f"{total / 1e9:.2f} GB", file=sys.stderr)
+    free = available_memory() if free is None else free
+    if free is not None and total > free:
+        raise ValueError(f"the replay buffer would need {total / 1e9:.1f} GB ({rows} rows x {num_envs} envs x "
+                         f"{obs_bytes / 1e3:.1f} kB) but {free / 1e9:.1f} GB are free: lower --set buffer_size "
+                         f"(now {buffer_size}) or --total-steps")
+    return rows
 
 
 def rng_state() -> dict[str, Any]:
@@ -68,5 +92,13 @@ def load_checkpoint(path: Path | str) -> dict[str, Any]:
     tensors to its device when loaded, and RNG states must stay CPU tensors."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"--resume: no checkpoint at {path}")
-    return torch.load(path, map_location="cpu", weights_only=False)
+        raise FileNotFoundError(f"no checkpoint at {path}")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - torch raises many kinds on a damaged file; all mean the same here
+        raise ValueError(f"{path} is not a readable checkpoint (damaged or not written by diffdlo): "
+                         f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from None
+    missing = [k for k in ("algo", "config", "step", "env", "rng") if not isinstance(ck, dict) or k not in ck]
+    if missing:
+        raise ValueError(f"{path} is not a diffdlo learner checkpoint: it lacks {missing}")
+    return ck

@@ -6,11 +6,11 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
-import torch
 import yaml
 
 from agents import config as config_lib
-from agents.checkpoints import CHECKPOINT
+from agents.checkpoints import CHECKPOINT, load_checkpoint
+from diffdlo.files import OutBusyError
 from diffdlo.params import ParamsError
 from diffdlo.rewards import REWARDS
 from diffdlo.shapes import TARGET_NAMES, TargetError
@@ -27,30 +27,39 @@ def positive_int(text: str) -> int:
     return v
 
 
+PRESET_DEFAULT = " (default: the preset's)"
+
+
 def make_parser(prog: str, doc: str | None) -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=prog, description=(doc or "").split("\n\n")[0],
-                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap = argparse.ArgumentParser(prog=prog, description=(doc or "").split("\n\n")[0])
     ap.add_argument("--preset", default=None,
                     help="named defaults: 'tuned' (params/<algo>.yaml, the default) or e.g. 'sb3-default' "
                          "(params/<algo>-sb3-default.yaml)")
     ap.add_argument("--config", default=None, help="YAML of defaults (instead of a preset)")
-    ap.add_argument("--target", default=None, help=f"'random' or one of {list(TARGET_NAMES)} or a .npy/.yaml path")
-    ap.add_argument("--obs", choices=OBS_TYPES, default=None, help="observation type")
-    ap.add_argument("--action", choices=ACTION_TYPES, default=None, help="action type")
-    ap.add_argument("--reward", choices=REWARDS, default=None, help="reward function")
-    ap.add_argument("--total-steps", type=positive_int, default=None, help="env transitions (all envs together)")
-    ap.add_argument("--num-envs", type=positive_int, default=None, help="ropes stepped together")
-    ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--target", default=None,
+                    help=f"'random', 'random_curve', one of {list(TARGET_NAMES)} or a .npy/.yaml path" + PRESET_DEFAULT)
+    ap.add_argument("--obs", choices=OBS_TYPES, default=None, help="observation type" + PRESET_DEFAULT)
+    ap.add_argument("--action", choices=ACTION_TYPES, default=None, help="action type" + PRESET_DEFAULT)
+    ap.add_argument("--reward", choices=REWARDS, default=None, help="reward function" + PRESET_DEFAULT)
+    ap.add_argument("--total-steps", type=positive_int, default=None,
+                    help="env transitions (all envs together)" + PRESET_DEFAULT)
+    ap.add_argument("--num-envs", type=positive_int, default=None, help="ropes stepped together" + PRESET_DEFAULT)
+    ap.add_argument("--seed", type=int, default=None, help="seed of everything" + PRESET_DEFAULT)
     ap.add_argument("--out", required=True, help="output directory (logs, checkpoint, results.json, pictures)")
-    ap.add_argument("--device", default=None, help="torch device, e.g. cpu or cuda")
+    ap.add_argument("--device", default=None, help="torch device, e.g. cpu or cuda" + PRESET_DEFAULT)
     ap.add_argument("--resume", action="store_true",
-                    help="continue from <out>/checkpoint.pt up to --total-steps (config from the checkpoint)")
-    ap.add_argument("--eval-every", type=positive_int, default=None, help="env steps between evaluations")
-    ap.add_argument("--eval-episodes", type=positive_int, default=None)
-    ap.add_argument("--checkpoint-every", type=positive_int, default=None, help="env steps between checkpoints")
-    ap.add_argument("--max-steps", type=positive_int, default=None, help="actions per episode")
-    ap.add_argument("--params", default=None, help="cable params name or YAML path")
-    ap.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default 1)")
+                    help="continue from <out>/checkpoint.pt up to --total-steps (config from the checkpoint; only "
+                         "--total-steps, --eval-every, --eval-episodes, --checkpoint-every and --device may change)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="start afresh in an --out that holds an earlier run, replacing its logs and results")
+    ap.add_argument("--eval-every", type=positive_int, default=None,
+                    help="env steps between evaluations" + PRESET_DEFAULT)
+    ap.add_argument("--eval-episodes", type=positive_int, default=None, help="episodes per evaluation" + PRESET_DEFAULT)
+    ap.add_argument("--checkpoint-every", type=positive_int, default=None,
+                    help="env steps between checkpoints" + PRESET_DEFAULT)
+    ap.add_argument("--max-steps", type=positive_int, default=None, help="actions per episode" + PRESET_DEFAULT)
+    ap.add_argument("--params", default=None, help="cable params name or YAML path" + PRESET_DEFAULT)
+    ap.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads" + PRESET_DEFAULT)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override any config key (YAML value), e.g. --set batch_size=128 --set hidden=[64,64]")
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -62,7 +71,8 @@ CLI_KEYS = ("threads", "target", "obs", "action", "reward", "total_steps", "num_
             "eval_episodes", "checkpoint_every", "max_steps", "params")
 
 
-def config_from_args(cls, algo: str, args: argparse.Namespace, ap: argparse.ArgumentParser):
+def requested_options(args: argparse.Namespace, ap: argparse.ArgumentParser) -> dict[str, Any]:
+    """The options the command line sets (flags and --set), by flat name."""
     overrides: dict[str, Any] = {}
     for item in args.set:
         if "=" not in item:
@@ -73,35 +83,56 @@ def config_from_args(cls, algo: str, args: argparse.Namespace, ap: argparse.Argu
         v = getattr(args, key)
         if v is not None:
             overrides[key] = v
+    return overrides
+
+
+def config_from_args(cls, algo: str, args: argparse.Namespace, ap: argparse.ArgumentParser):
     if args.config and args.preset:
         ap.error("give --config or --preset, not both")
     try:
-        return config_lib.load_config(cls, args.config or config_lib.preset_path(algo, args.preset), overrides)
+        return config_lib.load_config(cls, args.config or config_lib.preset_path(algo, args.preset),
+                                      requested_options(args, ap))
     except (ValueError, TypeError) as exc:
         ap.error(str(exc))
+
+
+def resumed_config(cls, algo: str, args: argparse.Namespace, ap: argparse.ArgumentParser):
+    """The checkpoint's config with the changes a resume may make; any other setting that differs from the
+    checkpoint's is refused, by name (a resume continues THAT run)."""
+    if args.preset or args.config:
+        ap.error("--resume takes the config from the checkpoint: drop --preset/--config")
+    try:
+        ck = load_checkpoint(Path(args.out) / CHECKPOINT)
+        if ck.get("algo") != algo:
+            raise ValueError(f"{Path(args.out) / CHECKPOINT} is a checkpoint of {ck.get('algo')!r}, not of {algo}")
+        cfg = config_lib.from_flat(cls, ck["config"])
+    except (FileNotFoundError, ValueError, KeyError, TypeError) as exc:
+        ap.error(f"--resume: {exc}")
+    asked = requested_options(args, ap)
+    differ = [f"{k} (the run's {config_lib.flat_value(cfg, k)!r}, asked {v!r})" for k, v in asked.items()
+              if k not in RESUME_KEYS and config_lib.flat_value(cfg, k) != v]
+    if differ:
+        ap.error(f"--resume: these settings differ from the checkpoint's: {'; '.join(differ)}. A resume continues "
+                 "the saved run: drop them, or start a new run in another --out")
+    try:
+        cfg = config_lib.replace(cfg, **{k: v for k, v in asked.items() if k in RESUME_KEYS})
+        cfg.check()
+    except (ValueError, TypeError) as exc:
+        ap.error(f"--resume: {exc}")
+    return cfg
 
 
 def run_cli(cls, algo: str, doc: str | None, train: Callable, argv: list[str] | None = None) -> int:
     """Parse, build the config (or take it from the checkpoint with --resume), train, report."""
     ap = make_parser(f"python -m agents.{algo}", doc)
     args = ap.parse_args(argv)
+    if args.resume and args.overwrite:
+        ap.error("give --resume or --overwrite, not both")
     out = Path(args.out)
-    if args.resume:
-        ckpt = out / CHECKPOINT
-        if not ckpt.exists():
-            ap.error(f"--resume: no checkpoint at {ckpt}")
-        saved = torch.load(ckpt, map_location="cpu", weights_only=False)["config"]
-        changes = {k: getattr(args, k) for k in RESUME_KEYS if getattr(args, k) is not None}
-        try:
-            cfg = config_lib.replace(config_lib.from_flat(cls, saved), **changes)
-            cfg.check()
-        except (ValueError, TypeError) as exc:
-            ap.error(f"--resume: the checkpoint's config: {exc}")
-    else:
-        cfg = config_from_args(cls, algo, args, ap)
+    cfg = resumed_config(cls, algo, args, ap) if args.resume else config_from_args(cls, algo, args, ap)
     try:
-        res = train(cfg, out, resume=args.resume, progress=not args.no_progress)
-    except (ValueError, TargetError, ParamsError, FileNotFoundError) as exc:
+        res = train(cfg, out, resume=args.resume, progress=not args.no_progress, overwrite=args.overwrite)
+    except (ValueError, TargetError, ParamsError, FileNotFoundError, FileExistsError, OutBusyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"{algo}: success rate {res['success_rate']:.2f} over {len(res['episodes'])} eval episodes, "

@@ -16,11 +16,11 @@ import torch
 import yaml
 
 from agents.hybrid import FEATURE_OBS
-from diffdlo.params import CableParams, load_params
+from diffdlo.checks import check_interval
+from diffdlo.params import PARAMS_DIR, CableParams, load_params   # one folder: cable params and presets
 from diffdlo.rewards import REWARDS
-from diffdlo.task import ACTION_TYPES, EXIT_RULES, OBS_TYPES
+from diffdlo.task import ACTION_TYPES, EXIT_RULES, OBS_TYPES, resolve_target
 
-PARAMS_DIR = Path(__file__).resolve().parent.parent / "params"
 SECTIONS = ("task", "run", "inputs")
 ENCODERS = ("nature", "keypoints")
 POLICIES = ("hybrid", "gaussian")
@@ -29,6 +29,43 @@ POLICIES = ("hybrid", "gaussian")
 def _positive_int(key: str, v: Any, least: int = 1) -> None:
     if not isinstance(v, int) or isinstance(v, bool) or v < least:
         raise ValueError(f"{key} must be a{' positive' if least == 1 else ' non-negative'} integer, got {v!r}")
+
+
+def _is(kind: str, v: Any) -> bool:
+    if kind in ("Any", "Callable"):
+        return True
+    if kind == "None":
+        return v is None
+    if kind == "int":
+        return isinstance(v, int) and not isinstance(v, bool)
+    if kind == "float":
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+    return isinstance(v, {"bool": bool, "str": str, "list": list, "dict": dict}.get(kind, object))
+
+
+def check_types(part) -> None:
+    """Every option holds a value of its declared type (e.g. ``--set lr=abc`` is named, not trained with)."""
+    for f in dataclasses.fields(part):
+        if f.name in SECTIONS:
+            continue
+        kinds = [k.strip() for k in str(f.type).split("|")]
+        v = getattr(part, f.name)
+        if not any(_is(k, v) for k in kinds):
+            wanted = "true or false" if kinds == ["bool"] else " or ".join(kinds)
+            raise ValueError(f"{f.name} must be {wanted}, got {v!r} ({type(v).__name__})")
+
+
+def check_ranges(part, ranges: dict[str, str]) -> None:
+    """Each named option (None: not set, skipped) within its interval, written "[lo, hi]" / "(lo, hi)" / mixed,
+    with inf for no bound; the message names the option, the interval and the value."""
+    for key, interval in ranges.items():
+        if getattr(part, key) is not None:
+            check_interval(key, getattr(part, key), interval)
+
+
+def check_layer_sizes(key: str, v: Any) -> None:
+    if not isinstance(v, list) or not all(_is("int", x) and x >= 1 for x in v):
+        raise ValueError(f"{key} must be a list of positive layer sizes, e.g. [256, 256], got {v!r}")
 
 
 def _choice(key: str, v: Any, allowed) -> None:
@@ -57,6 +94,10 @@ class TaskOptions:
     mark_end: bool = False                # images: a dot on node 0 of rope and target (env option)
 
     def check(self) -> None:
+        check_types(self)
+        check_ranges(self, {"max_steps": "[1, inf)", "success_tol": "(0, inf)", "image_size": "[8, inf)",
+                            "success_bonus": "(-inf, inf)", "step_penalty": "(-inf, inf)",
+                            "exit_penalty": "(-inf, inf)", "curve_max_turn_deg": "[0, 90]"})
         _choice("obs type", self.obs, OBS_TYPES)
         _choice("action type", self.action, ACTION_TYPES)
         _choice("reward", self.reward, REWARDS)
@@ -69,6 +110,7 @@ class TaskOptions:
             if not isinstance(po, dict) or set(po) - fields:
                 raise ValueError(f"param_overrides must map CableParams fields ({sorted(fields)}) to values, got "
                                  f"{po!r} (YAML flow maps need a space after each colon: {{n_nodes: 6}})")
+        resolve_target(self.target, self.cable_params())     # a bad target or params file is named before any run
 
     def cable_params(self) -> CableParams:
         """The run's cable parameters, resolved once (params file, then param_overrides) and passed down."""
@@ -93,6 +135,7 @@ class RunOptions:
     log_every: int = 100                  # updates (SAC, PlaNet) or rollouts (PPO) between train-loss rows
 
     def check(self) -> None:
+        check_types(self)
         for key in ("total_steps", "num_envs", "threads", "eval_every", "eval_episodes", "checkpoint_every",
                     "log_every"):
             _positive_int(key, getattr(self, key))
@@ -121,6 +164,9 @@ class InputOptions:
     augment_shift: int = 0                # images: DrQ random shift of up to this many pixels (0: off)
 
     def check(self, task: TaskOptions) -> None:
+        check_types(self)
+        check_layer_sizes("cnn_channels", self.cnn_channels)
+        check_ranges(self, {"features_dim": "[1, inf)"})
         _choice("features", self.features, ("relative", "raw"))
         _choice("encoder", self.encoder, ENCODERS)
         if self.features == "relative" and task.obs not in FEATURE_OBS:
@@ -162,10 +208,32 @@ def flat_names(cls) -> list[str]:
     return sorted(_section_fields(cls))
 
 
+def _field_types(cls) -> dict[str, str]:
+    types = {}
+    for f in dataclasses.fields(cls):
+        if f.name in SECTIONS:
+            types.update({g.name: str(g.type) for g in dataclasses.fields(f.default_factory())})
+        else:
+            types[f.name] = str(f.type)
+    return types
+
+
+def _coerced(kind: str, v: Any) -> Any:
+    """YAML reads 1e-3 (no dot) as a string: a string that is a number becomes one where the option is a float."""
+    if isinstance(v, str) and "float" in kind:
+        try:
+            return float(v)
+        except ValueError:
+            return v
+    return v
+
+
 def from_flat(cls, values: dict[str, Any], base=None):
     """A config ``cls`` from flat option names (YAML, ``--set``), on top of ``base`` (default: cls's defaults).
     Also takes the nested form of ``to_dict`` (sections as dicts). Unknown names raise ValueError."""
-    owner = _section_fields(cls)
+    owner, types = _section_fields(cls), _field_types(cls)
+    values = {k: ({k2: _coerced(types.get(k2, ""), v2) for k2, v2 in v.items()} if k in SECTIONS and
+                  isinstance(v, dict) else _coerced(types.get(k, ""), v)) for k, v in values.items()}
     base = cls() if base is None else base
     top: dict[str, Any] = {}
     parts: dict[str, dict[str, Any]] = {}
@@ -184,6 +252,14 @@ def from_flat(cls, values: dict[str, Any], base=None):
         raise ValueError(f"unknown config keys {sorted(unknown)} for {cls.__name__}: allowed {flat_names(cls)}")
     sections = {s: dataclasses.replace(getattr(base, s), **kv) for s, kv in parts.items()}
     return dataclasses.replace(base, **top, **sections)
+
+
+def flat_value(cfg, key: str) -> Any:
+    """The value of an option of a config by its flat name."""
+    section = _section_fields(type(cfg)).get(key)
+    if section is None:
+        raise ValueError(f"unknown config key {key!r} for {type(cfg).__name__}: allowed {flat_names(type(cfg))}")
+    return getattr(getattr(cfg, section) if section else cfg, key)
 
 
 def replace(cfg, **values):

@@ -3,7 +3,6 @@ and the run's ``results.json`` and picture."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -15,6 +14,7 @@ import torch
 from agents.config import RunOptions, TaskOptions
 from agents.envs import TrainEnv, make_env
 from diffdlo.envs import BatchedShapeControl
+from diffdlo.files import write_json_atomic
 from diffdlo.params import CableParams
 from diffdlo.task import target_label
 
@@ -123,7 +123,7 @@ def write_results(out: Path, method: str, task: TaskOptions, seed: int, result: 
     results.update(extra or {})
     if heldout:
         results["heldout"] = heldout
-    (out / "results.json").write_text(json.dumps(results, indent=2))
+    write_json_atomic(out / "results.json", results)
     try:
         import matplotlib
         matplotlib.use("Agg")

@@ -2,12 +2,15 @@
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections import deque
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from diffdlo.files import write_text_atomic
 
 
 class Logger:
@@ -27,12 +30,13 @@ class Logger:
                 path.unlink()
                 continue
             keep = [r for r in rows if float(r["step"]) <= resume_step]
-            with open(path, "w", newline="") as f:
-                if rows:
-                    w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
-                    w.writeheader()
-                    w.writerows(keep)
-                    self.fields[path.stem] = list(rows[0].keys())
+            text = io.StringIO()
+            if rows:
+                w = csv.DictWriter(text, fieldnames=list(rows[0].keys()))
+                w.writeheader()
+                w.writerows(keep)
+                self.fields[path.stem] = list(rows[0].keys())
+            write_text_atomic(path, text.getvalue())      # a kill now leaves the old file or the new, whole
         self.tb = None
         if tensorboard:
             try:

@@ -37,9 +37,9 @@ from typing import Any
 import torch
 
 from agents.buffer import ReplayBuffer, as_dict, index_obs
-from agents.checkpoints import warn_if_large_buffer
+from agents.checkpoints import replay_rows
 from agents.cli import run_cli
-from agents.config import RunOptions, TaskOptions, part
+from agents.config import RunOptions, TaskOptions, check_layer_sizes, check_ranges, check_types, part
 from agents.logs import fmt_postfix
 from agents.run import Run, learner
 from agents.dynamics import EnsembleDynamics, EpisodeTracker, ModelPlanner, check_settings
@@ -111,9 +111,18 @@ class PlaNetConfig:
             raise ValueError(f"plan_objective must be 'reward' or 'shape', got {self.plan_objective!r}")
         if self.plan_objective == "shape" and self.task.obs not in ("points", "distance"):
             raise ValueError("plan_objective 'shape' needs points or distance observations (it decodes node positions)")
-        for key in ("chunk_length", "batch_size", "horizon", "candidates", "elites", "iterations", "train_every"):
-            if int(getattr(self, key)) < 1:
-                raise ValueError(f"{key} must be >= 1")
+        check_types(self)
+        for key in ("model_hidden", "cnn_channels", "deconv_channels"):
+            check_layer_sizes(key, getattr(self, key))
+        at_least_one = ("members", "deter", "stoch", "hidden", "embed", "image_embed", "batch_size", "chunk_length",
+                        "buffer_size", "train_every", "updates_per_train", "horizon", "candidates", "elites",
+                        "iterations", "openloop_episodes")
+        check_ranges(self, {**{k: "[1, inf)" for k in at_least_one}, "running_weight": "[0, inf)",
+                            "min_std": "(0, inf)", "obs_std": "(0, inf)", "free_nats": "[0, inf)", "lr": "(0, inf)",
+                            "adam_eps": "(0, inf)", "grad_clip": "(0, inf)", "seed_episodes": "[0, inf)",
+                            "explore_noise": "[0, inf)", "openloop_context": "[0, inf)"})
+        if self.elites > self.candidates:
+            raise ValueError(f"elites must be at most candidates ({self.candidates}), got {self.elites}")
 
 
 def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int, p: CableParams) -> RSSM | EnsembleDynamics:
@@ -266,8 +275,7 @@ def train(cfg: PlaNetConfig, out: Path | str, resume: bool = False, progress: bo
     action_dim = env.core.action_dim
     model = build_model(cfg, obs, action_dim, run.params)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
-    rows = max(cfg.chunk_length + 2, cfg.buffer_size // num_envs)
-    warn_if_large_buffer(rows, num_envs, obs)
+    rows = replay_rows(cfg.buffer_size, cfg.run.total_steps, num_envs, obs, least=cfg.chunk_length + 2)
     rb = ReplayBuffer(rows, num_envs, obs, action_dim, device)
     actor = make_planner(model, cfg, env.core, cfg.run.seed)
     eval_planner = make_planner(model, cfg, run.eval_env.core, cfg.run.eval_seed)
@@ -276,6 +284,10 @@ def train(cfg: PlaNetConfig, out: Path | str, resume: bool = False, progress: bo
     n_updates, last_train = (ck["n_updates"], ck["last_train"]) if ck else (0, 0)
     obs, logger, bar = run.obs, run.logger, run.bar
     seed_steps = cfg.seed_episodes * env.core.max_steps
+    if cfg.run.total_steps <= seed_steps:
+        print(f"warning: total_steps {cfg.run.total_steps} ends within the seed episodes (seed_episodes x max_steps "
+              f"= {seed_steps} random steps): the model is never trained and plans untrained; raise --total-steps "
+              "or lower seed_episodes", file=sys.stderr)
 
     def evaluate_all() -> dict[str, Any]:
         model.eval()
@@ -328,7 +340,7 @@ def train(cfg: PlaNetConfig, out: Path | str, resume: bool = False, progress: bo
     if getattr(actor, "planned", 0):          # the ensemble's planner times itself (training collection, all ropes)
         extra.update(plan_ms_per_step=1000 * actor.plan_s / actor.planned,
                      plan_env_steps_per_s=actor.planned / max(actor.plan_s, 1e-9))
-    return run.finish(None, extra=extra, evaluate_fn=evaluate_all, before_heldout=model.eval,
+    return run.finish(None, extra=extra, evaluate_fn=lambda: run.evaluate(eval_planner), before_heldout=model.eval,
                       policy_for=lambda e: make_planner(model, cfg, e.core, cfg.run.eval_seed))
 
 

@@ -39,7 +39,8 @@ import torch.nn as nn
 from agents import hybrid
 from agents.buffer import ReplayBuffer
 from agents.cli import run_cli
-from agents.config import InputOptions, RunOptions, TaskOptions, check_policy, part
+from agents.config import (InputOptions, RunOptions, TaskOptions, check_layer_sizes, check_policy, check_ranges,
+                           check_types, part)
 from agents.networks import Features, mlp, shift_images
 from agents.run import Run, learner
 
@@ -72,6 +73,11 @@ class PPOConfig:
         self.run.check()
         self.inputs.check(self.task)
         check_policy(self.policy, self.task)
+        check_types(self)
+        check_layer_sizes("hidden", self.hidden)
+        check_ranges(self, {"lr": "(0, inf)", "n_steps": "[1, inf)", "batch_size": "[1, inf)", "n_epochs": "[1, inf)",
+                            "gamma": "[0, 1]", "gae_lambda": "[0, 1]", "clip_range": "(0, inf)", "ent_coef": "[0, inf)",
+                            "vf_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "log_std_init": "(-inf, inf)"})
 
 
 # ====================================================================== networks
@@ -198,13 +204,16 @@ def train(cfg: PPOConfig, out: Path | str, resume: bool = False, progress: bool 
         return agent.act(o, deterministic)
 
     per_rollout = cfg.n_steps * num_envs
+    if cfg.run.total_steps % num_envs:
+        print(f"ppo: {cfg.run.total_steps} steps are not a whole number of batched steps of {num_envs} ropes: the "
+              f"run makes {-(-cfg.run.total_steps // num_envs) * num_envs}", file=sys.stderr)
     while run.step < cfg.run.total_steps:
         if cfg.anneal_lr:
             for group in opt.param_groups:
                 group["lr"] = cfg.lr * max(0.0, 1.0 - run.step / cfg.run.total_steps)
-        # ---- collect one rollout into rows [0, n_steps)
+        # ---- collect one rollout into rows [0, n_steps): the last one shorter, so the run makes total_steps
         rb.reset()
-        for _ in range(cfg.n_steps):
+        for _ in range(min(cfg.n_steps, -(-(cfg.run.total_steps - run.step) // num_envs))):
             seen = shift_images(obs, cfg.inputs.augment_shift)   # DrQ shift: stored as seen, so the ratio is of one obs
             with torch.no_grad():
                 d, value = agent.dist(seen, update_norm=True)

@@ -35,15 +35,20 @@ from agents.config import to_dict
 from agents.envs import make_env
 from agents.evaluation import eval_row, evaluate, evaluate_heldout, heldout_envs, write_results
 from agents.logs import EpisodeStats, Logger, fmt_postfix
+from diffdlo.files import check_fresh_out, out_lock
 
 
 def learner(train: Callable) -> Callable:
-    """A learner's ``train(cfg, out, resume=False, progress=True)``: the config checked, then run with
-    cfg.run.threads torch CPU threads (restored afterwards)."""
+    """A learner's ``train(cfg, out, resume=False, progress=True, overwrite=False)``: the config checked; a fresh run
+    refused in a folder that holds an earlier run (unless ``overwrite``: its logs are then replaced); the folder
+    locked against a second writer; run with cfg.run.threads torch CPU threads (restored afterwards)."""
     @functools.wraps(train)
-    def checked_train(cfg, out: Path | str, resume: bool = False, progress: bool = True) -> dict[str, Any]:
+    def checked_train(cfg, out: Path | str, resume: bool = False, progress: bool = True,
+                      overwrite: bool = False) -> dict[str, Any]:
         cfg.check()
-        with torch_threads(cfg.run.threads):
+        if not resume:
+            check_fresh_out(out, overwrite, "an earlier run")
+        with out_lock(out), torch_threads(cfg.run.threads):
             return train(cfg, out, resume, progress)
     return checked_train
 
@@ -86,6 +91,7 @@ class Run:
             self.stats.buf.extend(ck["episode_stats"])
             self.step, self.last_eval, self.last_ckpt = ck["step"], ck["last_eval"], ck["last_ckpt"]
             self.last_success, self.wall_before = ck["last_success"], ck["wall_s"]
+            self.result = ck.get("result")           # the last evaluation (reused when nothing is left to train)
             set_rng_state(ck["rng"])
         self.logger = Logger(self.out, resume_step=self.step if self.resume else None)
         total = self.cfg.run.total_steps
@@ -136,8 +142,8 @@ class Run:
         save_checkpoint(self.out / CHECKPOINT, {
             "algo": self.algo, "config": to_dict(self.cfg), **state, "env": self.env.state_dict(),
             "episode_stats": list(self.stats.buf), "step": self.step, "last_eval": self.last_eval,
-            "last_ckpt": self.last_ckpt, "last_success": self.last_success, "wall_s": self.wall_s(),
-            "rng": rng_state()})
+            "last_ckpt": self.last_ckpt, "last_success": self.last_success, "result": self.result,
+            "wall_s": self.wall_s(), "rng": rng_state()})
 
     def wall_s(self) -> float:
         """Training and its evaluations so far, over every resumed part of the run."""
@@ -148,8 +154,9 @@ class Run:
                evaluate_fn: Callable[[], dict[str, Any]] | None = None,
                policy_for: Callable[[Any], Callable] | None = None,
                before_heldout: Callable[[], None] | None = None) -> dict[str, Any]:
-        """Close the bar and logs, evaluate once more if the run had nothing left to train (resumed at its end),
-        evaluate on the held-out targets (not counted in wall_s) and write results.json and its picture."""
+        """Close the bar and logs, evaluate on the held-out targets (not counted in wall_s) and write results.json
+        and its picture. A run resumed at its end trains nothing and reuses its saved last evaluation, so it adds no
+        log rows; ``evaluate_fn`` (default: ``evaluate(policy)``) only serves a checkpoint that holds none."""
         self.bar.close()
         if self.result is None:
             self.result = evaluate_fn() if evaluate_fn is not None else self.evaluate(policy)

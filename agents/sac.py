@@ -38,9 +38,10 @@ import torch.nn.functional as F
 
 from agents import hybrid
 from agents.buffer import ReplayBuffer
-from agents.checkpoints import warn_if_large_buffer
+from agents.checkpoints import replay_rows
 from agents.cli import run_cli
-from agents.config import InputOptions, RunOptions, TaskOptions, check_policy, part
+from agents.config import (InputOptions, RunOptions, TaskOptions, check_layer_sizes, check_policy, check_ranges,
+                           check_types, part)
 from agents.networks import Features, mlp, shift_images
 from agents.run import Run, learner
 
@@ -73,6 +74,15 @@ class SACConfig:
         self.run.check()
         self.inputs.check(self.task)
         check_policy(self.policy, self.task)
+        check_types(self)
+        check_layer_sizes("hidden", self.hidden)
+        check_ranges(self, {"lr": "(0, inf)", "buffer_size": "[1, inf)", "batch_size": "[1, inf)", "tau": "(0, 1]",
+                            "gamma": "[0, 1]", "learning_starts": "[0, inf)", "train_freq": "[1, inf)",
+                            "gradient_steps": "[1, inf)", "ent_coef_init": "(0, inf)", "target_entropy": "(-inf, inf)",
+                            "target_entropy_node": "[0, inf)", "head_hidden": "[1, inf)",
+                            "log_std_min": "(-inf, inf)", "log_std_max": "(-inf, inf)"})
+        if not self.log_std_min < self.log_std_max:
+            raise ValueError(f"log_std_min must be below log_std_max, got {self.log_std_min} and {self.log_std_max}")
 
 
 # ====================================================================== networks
@@ -243,8 +253,7 @@ def train(cfg: SACConfig, out: Path | str, resume: bool = False, progress: bool 
     actor_opt = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
     critic_opt = torch.optim.Adam(critic.parameters(), lr=cfg.lr)
     alpha_opt = torch.optim.Adam([log_alpha, log_alpha_node], lr=cfg.lr)
-    rows = max(2, cfg.buffer_size // cfg.run.num_envs)
-    warn_if_large_buffer(rows, cfg.run.num_envs, obs)
+    rows = replay_rows(cfg.buffer_size, cfg.run.total_steps, cfg.run.num_envs, obs)
     rb = ReplayBuffer(rows, cfg.run.num_envs, obs, action_dim, device)
     parts = dict(actor=actor, critic=critic, critic_target=critic_target, temperatures=temperatures,
                  actor_opt=actor_opt, critic_opt=critic_opt, alpha_opt=alpha_opt, buffer=rb)

@@ -25,7 +25,7 @@ from tqdm import tqdm
 from agents.checkpoints import seed_everything
 from agents.networks import ObsEncoder, mlp, shift_images
 from agents.hybrid import relative_features
-from diffdlo.envs.shape_control import BatchedShapeControl
+from diffdlo.envs import BatchedShapeControl
 
 
 def collect(samples: int, seed: int, image_size: int, mark_end: bool, target: str, envs: int = 512):

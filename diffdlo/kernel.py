@@ -1,10 +1,11 @@
 """The fused C++ CPU kernel (diffdlo/csrc/cable.cpp): build on first use, call through ctypes, autograd wrapper.
 
 The kernel is plain C++ with a C ABI, so building it needs only a C++ compiler (g++ or c++ on PATH, or $CXX) and
-takes a few seconds; nothing from PyTorch's headers is compiled. The shared library is cached in
-``$DIFFDLO_CACHE`` (default ``~/.cache/diffdlo``) under a hash of the source and flags. If no compiler is found or
-the build fails, ``available()`` is False, the reason is in ``unavailable_reason()``, and the simulator uses its
-pure-torch path.
+takes a few seconds; nothing from PyTorch's headers is compiled. The source is package data (read through
+``importlib.resources``, so an installed wheel builds it too). The shared library is cached in ``$DIFFDLO_CACHE``
+(default ``~/.cache/diffdlo``) under a hash of the source and flags. If no compiler is found or the build fails,
+``available()`` is False, the reason is in ``unavailable_reason()``, one ``KernelUnavailableWarning`` says so, and
+the simulator uses its pure-torch path.
 """
 from __future__ import annotations
 
@@ -16,11 +17,13 @@ import subprocess
 import sys
 import tempfile
 import threading
+import warnings
+from importlib import resources
 from pathlib import Path
 
 import torch
 
-SOURCE = Path(__file__).resolve().parent / "csrc" / "cable.cpp"
+SOURCE = resources.files(__package__) / "csrc" / "cable.cpp"
 # -march=native: the lane-group loops vectorize across ropes with the widest vectors this CPU has (the cache key
 # includes the CPU, so a cached build never runs on another model); -fno-math-errno lets sqrt vectorize.
 FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-std=c++17", "-fPIC", "-shared", "-pthread"]
@@ -28,6 +31,19 @@ FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-std=c++17", "-fPIC", "-sha
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
 _error: str | None = None
+
+
+class KernelUnavailableWarning(RuntimeWarning):
+    """The fused kernel could not be built, so every move runs on the much slower eager torch path."""
+
+
+def _warn_unavailable(reason: str) -> None:
+    """Say once, loudly, that the simulator is on its slow path, why, and how to get the fast one."""
+    warnings.warn(
+        f"diffdlo: the fused C++ simulator kernel is unavailable ({reason}), so the simulator falls back to its "
+        f"eager PyTorch path, about 100-500x slower per move on the CPU. Install a C++ compiler (g++, e.g. "
+        f"`apt install g++`, or clang++) or point $CXX at a working one, then restart Python. "
+        f"`python -m diffdlo --info` shows the backend in use.", KernelUnavailableWarning)
 
 
 def _cache_dir() -> Path:
@@ -64,10 +80,12 @@ def _build() -> ctypes.CDLL:
         print(f"diffdlo: compiling the C++ simulator kernel with {compiler} (first use only, a few seconds)...",
               file=sys.stderr, flush=True)
         with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
-            out = Path(tmp) / target.name
-            result = subprocess.run([compiler, *FLAGS, str(SOURCE), "-o", str(out)], capture_output=True, text=True)
+            src, out = Path(tmp) / SOURCE.name, Path(tmp) / target.name
+            src.write_bytes(source)     # a copy on disk for the compiler, wherever the package data lives
+            result = subprocess.run([compiler, *FLAGS, str(src), "-o", str(out)], capture_output=True, text=True)
             if result.returncode != 0:
-                raise RuntimeError(f"{compiler} failed to build {SOURCE}:\n{result.stderr[-2000:]}")
+                raise RuntimeError(f"{compiler} failed to build diffdlo/csrc/{SOURCE.name}:\n"
+                                   f"{result.stderr[-2000:]}")
             os.replace(out, target)     # atomic: concurrent processes never load a half-written file
     lib = ctypes.CDLL(str(target))
     lib.diffdlo_lanes.restype = ctypes.c_int64
@@ -90,6 +108,7 @@ def _load() -> ctypes.CDLL | None:
                     _lib = _build()
                 except (RuntimeError, OSError) as exc:
                     _error = str(exc)
+                    _warn_unavailable(_error)
     return _lib
 
 
@@ -101,6 +120,12 @@ def available() -> bool:
 def unavailable_reason() -> str | None:
     _load()
     return _error
+
+
+def library_path() -> str | None:
+    """The built shared library in use, or None where the kernel is unavailable."""
+    lib = _load()
+    return None if lib is None else lib._name
 
 
 def lanes() -> int:

@@ -3,12 +3,27 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-PARAMS_DIR = Path(__file__).resolve().parent.parent / "params"
+
+def _find_params_dir() -> Path:
+    """The folder the parameter files (``cable.yaml`` and the agents' presets) are read from.
+
+    A built wheel ships the repository's ``params/`` inside the package as ``diffdlo/_params`` (setup.cfg maps it),
+    so an installed package finds them wherever it lives. A source checkout (an editable install, or the repository
+    on ``sys.path``) has no such folder and reads ``params/`` at the repository root, the files the README names.
+    """
+    packaged = resources.files(__package__) / "_params"
+    if packaged.is_dir():
+        return Path(packaged)
+    return Path(__file__).resolve().parent.parent / "params"
+
+
+PARAMS_DIR = _find_params_dir()
 
 CONTROLLERS = ("kinematic", "pid")
 
@@ -112,8 +127,44 @@ def _check_number(name: str, value: Any, *, integer: bool = False) -> None:
         raise ParamsError(f"cable parameter {name!r} must be finite, got {value!r}")
 
 
+# Allowed range of every numeric field: field -> (lower bound, whether the bound itself is allowed, a reason where
+# the bound is not obvious). An error names the field, the value and this range.
+_RANGES: dict[str, tuple[float, bool, str]] = {
+    "n_nodes": (3, True, "bending needs an interior node"),
+    "length": (0, False, ""),
+    "mass": (0, False, ""),
+    "k_s": (0, False, "the links' axial springs hold the rope together"),
+    "k_b": (0, True, "0 is a chain that does not resist bending"),
+    "k_d": (0, True, "0 is undamped"),
+    "dt": (0, False, ""),
+    "max_speed": (0, False, ""),
+    "max_disp": (0, False, ""),
+    "max_drag_steps": (1, True, ""),
+    "k_p": (0, True, ""),
+    "k_i": (0, True, ""),
+    "k_ff": (0, True, ""),
+    "ff_len": (0, True, ""),
+    "settle_threshold": (0, True, ""),
+    "settle_check_every": (1, True, ""),
+    "settle_max_substeps": (0, True, ""),
+    "sigma": (0, True, ""),
+    "action_scale": (0, False, ""),
+    "max_episode_steps": (1, True, ""),
+    "success_tol": (0, False, ""),
+    "success_bonus": (0, True, ""),
+}
+
+
+def _check_range(name: str, value: float) -> None:
+    bound, inclusive, why = _RANGES[name]
+    if value >= bound if inclusive else value > bound:
+        return
+    allowed = f"{'>=' if inclusive else '>'} {bound}" + (f" ({why})" if why else "")
+    raise ParamsError(f"cable parameter {name!r} must be {allowed}, got {value!r}")
+
+
 def validate(p: CableParams) -> None:
-    """Raise ParamsError naming the first bad field and its value."""
+    """Raise ParamsError naming the first bad field, its value and the allowed range."""
     ints = {"n_nodes", "max_drag_steps", "settle_check_every", "settle_max_substeps", "max_episode_steps"}
     for f in dataclasses.fields(p):
         value = getattr(p, f.name)
@@ -126,22 +177,10 @@ def validate(p: CableParams) -> None:
             for v in value:
                 _check_number("workspace", v)
                 if v <= 0:
-                    raise ParamsError(f"cable parameter 'workspace' must be positive, got {value!r}")
+                    raise ParamsError(f"cable parameter 'workspace' must be > 0 in both axes, got {value!r}")
         else:
             _check_number(f.name, value, integer=f.name in ints)
-    if p.n_nodes < 3:
-        raise ParamsError(f"cable parameter 'n_nodes' must be at least 3 (bending needs an interior node), "
-                          f"got {p.n_nodes}")
-    for name in ("length", "mass", "dt", "max_speed", "max_disp", "max_drag_steps", "settle_check_every",
-                 "action_scale", "success_tol"):
-        if getattr(p, name) <= 0:
-            raise ParamsError(f"cable parameter {name!r} must be positive, got {getattr(p, name)!r}")
-    for name in ("k_s", "k_b", "k_d", "k_p", "k_i", "k_ff", "ff_len", "settle_threshold",
-                 "settle_max_substeps", "sigma", "success_bonus", "max_episode_steps"):
-        if getattr(p, name) < 0:
-            raise ParamsError(f"cable parameter {name!r} must not be negative, got {getattr(p, name)!r}")
-    if p.max_episode_steps < 1:
-        raise ParamsError(f"cable parameter 'max_episode_steps' must be at least 1, got {p.max_episode_steps}")
+            _check_range(f.name, value)
     margin = p.stability_margin()
     if margin >= 1.0:
         raise ParamsError(

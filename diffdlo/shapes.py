@@ -22,6 +22,9 @@ TARGET_FAMILIES = ("random", "random_curve")
 CURVE_MAX_TURN_DEG = 12.0
 # A custom target's links may differ from the rope's rest length by at most this fraction.
 LINK_TOLERANCE = 0.10
+# Consecutive nodes of a target or start shape closer than this fraction of the rest length are (nearly)
+# coincident: such a link has no direction, so neither a reward nor the rope's bending force is defined there.
+MIN_LINK_FRACTION = 0.10
 
 
 class TargetError(ValueError):
@@ -107,13 +110,43 @@ def _load_file(path: Path) -> Any:
     raise TargetError(f"target file {str(path)!r} must end in .npy, .yaml or .yml")
 
 
-def check_target(points: torch.Tensor, p: CableParams, source: str = "target") -> None:
-    """Raise TargetError unless points is a finite (N, 2) polyline whose links are close to the rope's."""
+def check_finite_nodes(points: torch.Tensor, source: str, error: type[ValueError] = ValueError) -> None:
+    """Raise ``error`` naming the first node of points (..., N, 2) that holds NaN or inf, and its value."""
+    bad = ~torch.isfinite(points).all(-1)
+    if bool(bad.any()):
+        *rope, node = bad.nonzero()[0].tolist()
+        where = f"rope {rope[0]}, node {node}" if rope else f"node {node}"
+        raise error(f"{source} contains NaN or inf: {where} is {points[(*rope, node)].tolist()}")
+
+
+def check_link_lengths(points: torch.Tensor, rest_length: float, source: str, min_fraction: float = MIN_LINK_FRACTION,
+                       error: type[ValueError] = ValueError) -> None:
+    """Raise ``error`` naming the first pair of consecutive nodes of points (..., N, 2) closer than ``min_fraction``
+    of the rest length, and their distance."""
+    lengths = (points[..., 1:, :] - points[..., :-1, :]).detach().norm(dim=-1)
+    short = lengths < min_fraction * rest_length
+    if bool(short.any()):
+        *rope, node = short.nonzero()[0].tolist()
+        where = f"rope {rope[0]}: " if rope else ""
+        raise error(f"{source}: {where}nodes {node} and {node + 1} are {float(lengths[(*rope, node)]):.3g} m apart, "
+                    f"coincident or nearly so (consecutive nodes must be at least {min_fraction:.0%} of the rest "
+                    f"length {rest_length:.4f} m apart)")
+
+
+def check_shape(points: torch.Tensor, p: CableParams, source: str, error: type[ValueError] = ValueError) -> None:
+    """Raise ``error`` unless points is a finite (N, 2) polyline with no coincident or nearly coincident consecutive
+    nodes (closer than MIN_LINK_FRACTION of the rest length): the checks shared by targets and start shapes."""
     if points.ndim != 2 or points.shape != (p.n_nodes, 2):
-        raise TargetError(f"{source} must have shape ({p.n_nodes}, 2) for a {p.n_nodes}-node rope, "
-                          f"got {tuple(points.shape)}")
-    if not torch.isfinite(points).all():
-        raise TargetError(f"{source} contains NaN or inf")
+        raise error(f"{source} must have shape ({p.n_nodes}, 2) for a {p.n_nodes}-node rope, "
+                    f"got {tuple(points.shape)}")
+    check_finite_nodes(points, source, error)
+    check_link_lengths(points, p.rest_length, source, error=error)
+
+
+def check_target(points: torch.Tensor, p: CableParams, source: str = "target") -> None:
+    """Raise TargetError unless points is a finite (N, 2) polyline (``check_shape``) whose links are close to the
+    rope's."""
+    check_shape(points, p, source, TargetError)
     lengths = (points[1:] - points[:-1]).norm(dim=-1)
     rel = (lengths / p.rest_length - 1.0).abs()
     worst = int(rel.argmax())

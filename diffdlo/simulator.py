@@ -17,6 +17,11 @@ from .params import CableParams, load_params
 
 # A rope farther than this from the origin [m] has diverged (50x the thesis's 2 m workspace).
 DIVERGENCE_RADIUS = 100.0
+# Consecutive nodes of an input state closer than this fraction of the rest length are (nearly) coincident: their
+# link has no direction, so the spring and bending forces are garbage or NaN. No rope state a move produces comes
+# near it: after random 0.1 m moves the shortest link is ~90% of the rest length (default params, both controllers)
+# and ~10% with 1 m/s drags and no settling on a 6-node rope.
+MIN_STATE_LINK_FRACTION = 0.01
 
 
 class SimulationError(RuntimeError):
@@ -97,6 +102,8 @@ class Simulator:
         if not torch.isfinite(x).all():
             bad = (~torch.isfinite(x)).flatten(1).any(1).nonzero().flatten().tolist()
             raise ValueError(f"{name} contains NaN or inf (batch members {bad})")
+        if name != "vel":                                 # positions: no coincident consecutive nodes
+            shapes.check_link_lengths(x, self.params.rest_length, name, MIN_STATE_LINK_FRACTION)
 
     def _check_placement(self, name: str, x: torch.Tensor) -> None:
         if x.device != self.device and not (x.device.type == self.device.type and self.device.index is None):

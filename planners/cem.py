@@ -200,11 +200,12 @@ class CEMPlanner:
         self.cem.shift()
         return best[0]
 
-    # the command line's options (planners/common.py): constructor argument -> (type, default, help)
-    OPTIONS = {"horizon": (int, 2, "moves planned ahead"), "candidates": (int, 300, "sequences per iteration"),
-               "elites": (int, 30, "elites refit per iteration"),
-               "iterations": (int, 5, "CEM iterations per control step"),
-               "running_weight": (float, 0.5, "weight of the intermediate states' error in the cost")}
+    # the command line's options (planners/common.py): constructor argument -> (type, default, allowed, help)
+    OPTIONS = {"horizon": (int, 2, "[1, inf)", "moves planned ahead"),
+               "candidates": (int, 300, "[1, inf)", "sequences per iteration"),
+               "elites": (int, 30, "[1, inf)", "elites refit per iteration (at most the candidates)"),
+               "iterations": (int, 5, "[1, inf)", "CEM iterations per control step"),
+               "running_weight": (float, 0.5, "[0, inf)", "weight of the intermediate states' error in the cost")}
 
 
 def main(argv: list[str] | None = None) -> int:

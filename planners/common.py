@@ -9,7 +9,6 @@ diffdlo.shapes.TARGET_FAMILIES) that reset also draws episode i's target, record
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -19,7 +18,9 @@ import torch
 from tqdm import tqdm
 
 from diffdlo import task
+from diffdlo.checks import check_interval
 from diffdlo.envs import BatchedShapeControl
+from diffdlo.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic
 from diffdlo.params import ParamsError, load_params
 from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
 
@@ -78,19 +79,30 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
     parser.add_argument("--device", default="cpu", help="simulator device (default cpu)")
     parser.add_argument("--params", default="cable", help="params name or YAML path (default cable)")
     parser.add_argument("--success-tol", type=float, default=None, help="success threshold [m] (default params: 0.01)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in --out")
     parser.add_argument("--no-gif", action="store_true", help="skip the GIFs")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     group = parser.add_argument_group(planner_cls.name)
-    for key, (kind, default, text) in planner_cls.OPTIONS.items():
-        group.add_argument(f"--{key.replace('_', '-')}", type=kind, default=default, help=f"{text} (default {default})")
+    for key, (kind, default, allowed, text) in planner_cls.OPTIONS.items():
+        group.add_argument(f"--{key.replace('_', '-')}", type=kind, default=default,
+                           help=f"{text}: in {allowed} (default {default})")
     return parser
 
 
 def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = None) -> int:
     parser = make_parser(name, doc, planner_cls)
     args = parser.parse_args(argv)
-    if args.episodes < 1 or args.max_steps < 1:
-        parser.error(f"--episodes and --max-steps must be >= 1, got {args.episodes} and {args.max_steps}")
+    try:
+        check_interval("--episodes", args.episodes, "[1, inf)")
+        check_interval("--max-steps", args.max_steps, "[1, inf)")
+        if args.success_tol is not None:
+            check_interval("--success-tol", args.success_tol, "(0, inf)")
+        for key, (_, _, allowed, _) in planner_cls.OPTIONS.items():
+            check_interval(f"--{key.replace('_', '-')}", getattr(args, key), allowed)
+        if "elites" in planner_cls.OPTIONS and args.elites > args.candidates:
+            raise ValueError(f"--elites must be at most --candidates ({args.candidates}), got {args.elites}")
+    except ValueError as exc:
+        parser.error(str(exc))
     try:
         p = load_params(args.params)
     except (ParamsError, OSError, ValueError) as exc:
@@ -111,15 +123,19 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     planner = planner_cls(env.sim, seed=args.seed, **{k: getattr(args, k) for k in planner_cls.OPTIONS})
     label = task.target_label(args.target)
     out = Path(args.out or f"runs/{name}-{label}")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        check_fresh_out(out, args.overwrite, "an earlier run")
+    except FileExistsError as exc:
+        parser.error(str(exc))
 
-    t0 = time.perf_counter()
-    episodes = []
-    for i in range(args.episodes):
-        episodes.append(run_episode(env, planner, args.seed + i, desc=f"{name} {label} ep {i + 1}/{args.episodes}",
-                                    progress=not args.quiet))
-    wall = time.perf_counter() - t0
-    write_outputs(out, name, args, label, target, episodes, wall)
+    try:
+        with out_lock(out):                                 # one writer per --out
+            t0 = time.perf_counter()
+            episodes = [run_episode(env, planner, args.seed + i, progress=not args.quiet,
+                                    desc=f"{name} {label} ep {i + 1}/{args.episodes}") for i in range(args.episodes)]
+            write_outputs(out, name, args, label, target, episodes, time.perf_counter() - t0)
+    except OutBusyError as exc:
+        parser.error(str(exc))
     return 0
 
 
@@ -145,7 +161,7 @@ def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor |
         "plan_s_per_step": plan_s / max(steps, 1), "max_steps": args.max_steps,
         "config": {k: v for k, v in vars(args).items() if k not in ("out", "quiet")},
     }
-    (out / "results.json").write_text(json.dumps(results, indent=2))
+    write_json_atomic(out / "results.json", results)
     ropes, rope_targets, titles = [], [], []
     for i, e in enumerate(episodes):
         ropes += [e["frames"][0], e["frames"][-1]]

@@ -95,10 +95,11 @@ class GradientPlanner:
         self.sim_evals += obj.sim_evals
         return encode_node_action(n, d, self.p.n_nodes, self.p.action_scale)
 
-    # the command line's options (planners/common.py): constructor argument -> (type, default, help)
-    OPTIONS = {"iters": (int, 12, "Adam iterations per control step"), "restarts": (int, 2, "initial drags per node"),
-               "lr": (float, 0.3, "Adam learning rate on u, d = s tanh(u)"),
-               "halvings": (int, 2, "successive halvings of the rows")}
+    # the command line's options (planners/common.py): constructor argument -> (type, default, allowed, help)
+    OPTIONS = {"iters": (int, 12, "[1, inf)", "Adam iterations per control step"),
+               "restarts": (int, 2, "[1, inf)", "initial drags per node"),
+               "lr": (float, 0.3, "(0, inf)", "Adam learning rate on u, d = s tanh(u)"),
+               "halvings": (int, 2, "[0, inf)", "successive halvings of the rows")}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -16,7 +16,8 @@ from agents.logs import read_csv
 
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
-SMALL = {"sac": ["--set", "hidden=[32,32]", "--set", "batch_size=32", "--set", "learning_starts=64"],
+SMALL = {"sac": ["--set", "hidden=[32,32]", "--set", "batch_size=32", "--set", "learning_starts=64",
+                 "--set", "gradient_steps=8"],   # one update per transition of the 8 ropes (the preset: 32 ropes)
          "ppo": ["--set", "hidden=[32,32]", "--set", "n_steps=16", "--set", "n_epochs=2", "--set", "batch_size=32",
                  "--set", "anneal_lr=false"]}   # the lr schedule spans --total-steps: extending a run changes it
 MODULES = {"sac": sac, "ppo": ppo}
@@ -155,8 +156,9 @@ def test_resume_without_checkpoint_and_bad_target(tmp_path, capsys):
     with pytest.raises(SystemExit):
         ppo.main(["--out", str(tmp_path / "none"), "--resume"])
     assert "no checkpoint" in capsys.readouterr().err
-    assert sac.main(argv("sac", tmp_path, 64, "--target", "zigzag")) == 2
-    assert "zigzag" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:                       # named before anything is written
+        sac.main(argv("sac", tmp_path / "run", 64, "--target", "zigzag"))
+    assert exc.value.code == 2 and "zigzag" in capsys.readouterr().err and not (tmp_path / "run").exists()
 
 
 def test_tensorboard_logging_when_installed(tmp_path):
@@ -181,13 +183,14 @@ def test_evaluate_returns_each_episodes_own_final_rope_and_target():
     torch.testing.assert_close(recomputed.float(), reported, rtol=1e-4, atol=1e-6)
 
 
-def test_large_replay_buffer_warning(capsys):
-    from agents.checkpoints import warn_if_large_buffer
+def test_replay_buffer_is_sized_to_the_run_and_refused_past_free_memory(capsys):
+    from agents.checkpoints import replay_rows
     obs = {"image": torch.zeros(4, 64, 64, 3, dtype=torch.uint8)}
-    warn_if_large_buffer(1000, 4, obs)                       # 49 MB: silent
-    assert capsys.readouterr().err == ""
-    warn_if_large_buffer(100_000, 16, obs)                   # 19.7 GB
-    assert "19.7 GB" in capsys.readouterr().err
+    assert replay_rows(1_000_000, 64, 16, obs, free=10**12) == 5          # a 64-step run holds 4 rows (+1)
+    assert "5 rows x 16 envs x 12.3 kB" in capsys.readouterr().err      # the size of an image buffer is printed
+    assert replay_rows(1_000, 10**6, 4, {"p": torch.zeros(4, 3)}, free=10**12) == 250   # buffer_size caps it
+    with pytest.raises(ValueError, match=r"19.7 GB .* 1.0 GB are free: lower --set buffer_size \(now 1600000\)"):
+        replay_rows(1_600_000, 10**7, 16, obs, free=10**9)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -105,3 +105,19 @@ def test_final_obs_required_and_uint8_kept():
     with pytest.raises(ValueError, match="final_obs"):
         rb.add({"image": torch.zeros(1, 8, 8, 3, dtype=torch.uint8)}, torch.zeros(1, 2), torch.zeros(1),
                torch.tensor([True]), torch.tensor([False]))
+
+
+def test_a_buffer_that_never_wrapped_grows_when_loaded_into_a_larger_one():
+    obs = {"p": torch.zeros(2, 3)}
+    small = ReplayBuffer(4, 2, obs, 3)
+    for i in range(3):
+        small.add({"p": torch.full((2, 3), float(i))}, torch.zeros(2, 3), torch.full((2,), float(i)),
+                  torch.zeros(2, dtype=torch.bool), torch.zeros(2, dtype=torch.bool))
+    big = ReplayBuffer(10, 2, obs, 3)
+    big.load_state_dict(small.state_dict())
+    assert big.pos == 3 and len(big) == 3 and torch.equal(big.reward[:3], small.reward[:3])
+    for i in range(3, 5):                                  # a full small buffer has wrapped: it cannot grow
+        small.add({"p": torch.zeros(2, 3)}, torch.zeros(2, 3), torch.zeros(2), torch.zeros(2, dtype=torch.bool),
+                  torch.zeros(2, dtype=torch.bool))
+    with pytest.raises(ValueError, match="buffer shape mismatch"):
+        ReplayBuffer(10, 2, obs, 3).load_state_dict(small.state_dict())

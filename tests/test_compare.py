@@ -17,7 +17,7 @@ ARGS = ["--quick", "--methods", "greedy", "cem", "sac", "--seeds", "0", "--jobs"
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
     root = tmp_path_factory.mktemp("compare")
-    argv = [*ARGS, "--out", str(root / "cells"), "--doc", str(root / "RESULTS.md"), "--figures", str(root / "fig")]
+    argv = [*ARGS, "--out", str(root / "cells"), "--report", str(root / "RESULTS.md")]   # figures: root/figures
     assert compare.main(argv) == 0
     return root, argv
 
@@ -146,7 +146,7 @@ def test_quick_run_writes_a_well_formed_table(quick):
     # each episode ran on the target the env draws for its reset seed, as its own run reports it
     assert merged["episode_targets"] == [e["target_name"] for e in merged["episodes"]] \
         == compare.random_target_names(10000, 2)
-    figs = sorted(p.name for p in (root / "fig").glob("*.png"))
+    figs = sorted(p.name for p in (root / "figures").glob("*.png"))
     assert "quick_curves_sac_diagonal.png" in figs and "quick_gallery_diagonal.png" in figs
     assert "quick_planner_error_vs_evals_diagonal.png" in figs and "quick_success_vs_steps_diagonal.png" in figs
 
@@ -170,7 +170,7 @@ def test_cost_section_puts_planners_and_learners_in_one_currency(quick):
     expected = 64 / (cem_per_ep - sac_per_ep)                                  # episodes until SAC is cheaper
     assert float(by["sac"][9].split(";")[0]) == pytest.approx(expected, abs=0.5)
     assert compare.payback({"train_moves": 100.0, "episode_moves": 5.0}, {"episode_moves": 3.0}, "moves") == math.inf
-    assert "quick_cost_diagonal.png" in {p.name for p in (root / "fig").glob("*.png")}
+    assert "quick_cost_diagonal.png" in {p.name for p in (root / "figures").glob("*.png")}
 
 
 def test_heldout_rows_come_from_the_learners_trained_elsewhere():
@@ -217,11 +217,16 @@ def test_ray_smoke(tmp_path):
 
 
 def test_partial_report_names_the_cells_not_run(quick, tmp_path):
+    import shutil
     root, _ = quick                                 # the quick cells' paths are also cells of the full grid
+    cells_dir = tmp_path / "cells"
+    shutil.copytree(root / "cells", cells_dir)
+    for meta in cells_dir.rglob("cell.json"):       # their stored (quick) settings would keep them out of the report
+        meta.unlink()
     full = compare.load_grid(quick=False)
-    compare.write_report(full, root / "cells", tmp_path / "R.md", None)
+    compare.write_report(full, cells_dir, tmp_path / "R.md", None)
     md = (tmp_path / "R.md").read_text()
-    n = len(compare.build_cells(full, root / "cells"))
+    n = len(compare.build_cells(full, cells_dir))
     assert f"4 of {n} cells finished" in md
     assert f"**Partial comparison: {n - 4} of {n} cells not run yet**" in md
     assert "ppo/points/random: 0 1 2 3 4" in md and "greedy/default/diagonal: 1 2 3 4;" in md

@@ -10,7 +10,7 @@ from agents.checkpoints import CHECKPOINT
 from agents.config import load_config
 from agents.networks import KeypointCNN, random_shift, shift_images
 from diffdlo import image as rimage
-from diffdlo.envs.shape_control import BatchedShapeControl
+from diffdlo.envs import BatchedShapeControl
 
 from tests.test_agents import argv
 

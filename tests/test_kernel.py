@@ -129,7 +129,7 @@ def test_float32_kernel_within_1mm_of_the_float64_reference(params):
 @pytest.mark.parametrize("batch,bad", [(2, 0), (MIXED, 3), (MIXED, MIXED - 1)])
 def test_kernel_reports_divergence(params, batch, bad):
     pos = crumpled(batch, params)
-    pos[bad, 5] = pos[bad, 4]
+    pos[bad, 5] = pos[bad, 4] + torch.tensor([1e3, 0.0], dtype=torch.float64)   # a link 1 km long: it blows up
     with pytest.raises(diffdlo.SimulationError, match=rf"batch members \[{bad}\]"):
         diffdlo.Simulator(params, dtype=torch.float64, backend="kernel").move(
             pos, torch.zeros(batch, dtype=torch.int64), torch.zeros(batch, 2, dtype=torch.float64))

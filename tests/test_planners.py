@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo.envs.shape_control import BatchedShapeControl
+from diffdlo.envs import BatchedShapeControl
 from diffdlo.task import decode_node_action, encode_node_action
 from planners import SimObjective
 from planners import cem as cem_mod, gradient as grad_mod, greedy as greedy_mod

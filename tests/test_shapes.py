@@ -53,8 +53,12 @@ def test_bad_targets_give_clear_errors(params, tmp_path):
         diffdlo.target_shape(tmp_path / "missing.npy", params)
     nan = arc(params)
     nan[3, 1] = np.nan
-    with pytest.raises(TargetError, match="NaN"):
+    with pytest.raises(TargetError, match=r"NaN or inf: node 3 is \[.*, nan\]"):
         diffdlo.target_shape(nan, params)
+    coincident = arc(params)
+    coincident[8] = coincident[7]
+    with pytest.raises(TargetError, match="nodes 7 and 8 are 0 m apart"):
+        diffdlo.target_shape(coincident, params)
     (tmp_path / "words.yaml").write_text("points: [[a, b]]\n")
     with pytest.raises(TargetError, match="not an \\(N, 2\\) array of numbers"):
         diffdlo.target_shape(tmp_path / "words.yaml", params)

@@ -166,7 +166,10 @@ def test_bad_node_ids_shapes_devices_and_dtypes_raise(sim64, params):
 
 def test_divergence_is_reported_not_returned(sim64, params):
     pos = crumpled(2, params)
-    pos[1, 5] = pos[1, 4]                      # a zero-length link: the axial force is undefined
+    pos[1, 5] = pos[1, 4]                      # a zero-length link (the axial force is undefined): refused up front
+    with pytest.raises(ValueError, match=r"rope 1: nodes 4 and 5 are 0"):
+        sim64.move(pos, torch.tensor([0, 0]), torch.zeros(2, 2, dtype=torch.float64))
+    pos[1, 5] = pos[1, 4] + torch.tensor([1e3, 0.0], dtype=torch.float64)   # a link 1 km long: it blows up
     with pytest.raises(diffdlo.SimulationError, match=r"batch members \[1\]"):
         sim64.move(pos, torch.tensor([0, 0]), torch.zeros(2, 2, dtype=torch.float64))
 

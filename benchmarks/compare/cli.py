@@ -1,44 +1,73 @@
-"""The command line: ``python -m benchmarks.compare`` selects cells of the grid, runs them, writes the report."""
+"""The command line: ``python -m benchmarks.compare`` selects cells of the grid, runs them, writes the report.
+
+A run holds ``<out>/.compare.lock`` (one writer per cell root), stops its cells' processes when it is stopped
+(Ctrl-C, SIGTERM, SIGHUP), refuses finished cells whose grid settings changed unless --rerun-changed, and writes
+the report only where --report names (default ``<out>/RESULTS.md``, figures beside it in ``figures/``)."""
 from __future__ import annotations
 
-import argparse
-import os
+import sys
 from pathlib import Path
 
 from . import __doc__ as HARNESS_DOC
-from .grid import GRID_FILE, build_cells, command_line, is_done, load_grid
+from .arguments import filter_errors, option_errors, parser
+from .grid import build_cells, command_line, is_done, load_grid
+from diffdlo.files import OutBusyError, out_lock
+from .processes import Terminated, signals_stop_compare
 from .report import write_report
 from .runner import run_cells
+from .settings import changed_cells, describe_changes, supersede
+
+EXIT_INTERRUPTED = 130          # as a shell reports a command ended by Ctrl-C
+EXIT_TERMINATED = 143           # ... and by SIGTERM
+
+
+def _say(message: str) -> None:
+    print(f"compare: {message}", file=sys.stderr, flush=True)
+
+
+def _changed_settings(cells: list, out: Path, rerun: bool) -> bool:
+    """Finished cells whose grid settings changed: moved aside to rerun (``rerun``) or named. False: refuse."""
+    changed = changed_cells(cells)
+    if not changed:
+        return True
+    if not rerun:
+        _say(f"{len(changed)} finished cell(s) ran with other settings than the grid's now; rerun them with "
+             "--rerun-changed (their folders are moved to <out>/superseded/), or restore the grid:")
+        for c, ch in changed:
+            print(f"  {describe_changes(c, ch)}", file=sys.stderr)
+        return False
+    for c, ch in changed:
+        _say(f"rerunning {describe_changes(c, ch)}; the old folder is now {supersede(c, out)}")
+    return True
+
+
+def _run(args, cells, out: Path) -> int:
+    """Run the selected cells under the lock of ``out``. Returns the exit status."""
+    try:
+        with out_lock(out, ".compare.lock", "another compare"), signals_stop_compare():
+            if not _changed_settings(cells, out, args.rerun_changed):
+                return 2
+            results = run_cells(cells, jobs=args.jobs, ray_address=args.ray, progress=not args.no_progress,
+                                ray_num_cpus=args.ray_cpus)
+    except OutBusyError as exc:
+        _say(str(exc))
+        return 3
+    except KeyboardInterrupt as exc:
+        _say("stopped: no report written; finished cells are kept and the rest run next time")
+        return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
+    counts = {s: sum(r["status"] == s for r in results) for s in ("done", "skipped", "failed")}
+    print(f"cells: {counts['done']} run, {counts['skipped']} already finished (skipped), {counts['failed']} failed")
+    return 1 if counts["failed"] else 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.compare", description=HARNESS_DOC.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="the tiny grid (minutes): a format example, not results")
-    ap.add_argument("--grid", default=str(GRID_FILE), help="grid YAML (default benchmarks/compare.yaml)")
-    ap.add_argument("--methods", nargs="+", default=None)
-    ap.add_argument("--variants", nargs="+", default=None)
-    ap.add_argument("--targets", nargs="+", default=None)
-    ap.add_argument("--seeds", nargs="+", type=int, default=None)
-    ap.add_argument("--out", default=None, help="cell root (default runs/compare; --quick: runs/compare-quick)")
-    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="cells at once (default: cores)")
-    ap.add_argument("--ray", default=None, metavar="ADDRESS", help="run cells as Ray tasks ('local': ray.init())")
-    ap.add_argument("--report", action="store_true", help="only write the report from finished cells")
-    ap.add_argument("--no-report", action="store_true", help="run cells, write no report")
-    ap.add_argument("--doc", default="docs/RESULTS.md", help="report path (default docs/RESULTS.md)")
-    ap.add_argument("--figures", default="docs/figures", help="figure folder ('' for none)")
-    ap.add_argument("--list", action="store_true", help="print the selected cells and their commands, run nothing")
-    ap.add_argument("--no-progress", action="store_true")
-    ap.add_argument("--learner-device", default=None, metavar="DEVICE",
-                    help="learners' networks on DEVICE (e.g. cuda), simulation on the CPU; planners unchanged")
+    ap = parser(HARNESS_DOC.split("\n\n")[0])
     args = ap.parse_args(argv)
     grid = load_grid(args.quick, args.grid)
     out = Path(args.out or ("runs/compare-quick" if args.quick else "runs/compare"))
-    for name, vals, allowed in (("--methods", args.methods, list(grid["methods"])),
-                                ("--targets", args.targets, grid["targets"])):
-        bad = sorted(set(vals or []) - set(allowed))
-        if bad:
-            ap.error(f"{name}: unknown {bad}; this grid has {allowed}")
+    errors = filter_errors(args, grid) + option_errors(args)
+    if errors:
+        ap.error("; ".join(errors))
     cells = build_cells(grid, out, args.methods, args.variants, args.targets, args.seeds, args.learner_device)
     if not cells:
         ap.error("no cell matches the filters")
@@ -47,13 +76,17 @@ def main(argv: list[str] | None = None) -> int:
             print(("done    " if is_done(c) else "todo    ") + command_line(c))
         return 0
     status = 0
-    if not args.report:
-        results = run_cells(cells, jobs=args.jobs, ray_address=args.ray, progress=not args.no_progress)
-        counts = {s: sum(r["status"] == s for r in results) for s in ("done", "skipped", "failed")}
-        print(f"cells: {counts['done']} run, {counts['skipped']} already finished (skipped), {counts['failed']} failed")
-        status = 1 if counts["failed"] else 0
+    if not args.report_only:
+        status = _run(args, cells, out)
+        if status not in (0, 1):
+            return status
     if not args.no_report:
-        write_report(grid, out, args.doc, args.figures or None, build_cells(grid, out))
-        print(f"report: {args.doc}")
+        doc = Path(args.report) if args.report else out / "RESULTS.md"
+        every_cell = build_cells(grid, out)
+        left_out = changed_cells(every_cell)
+        if left_out:
+            _say(f"the report leaves out {len(left_out)} finished cell(s) whose grid settings changed since they ran "
+                 "(named at its top; --rerun-changed reruns them)")
+        write_report(grid, out, doc, None if args.no_figures else doc.parent / "figures", every_cell)
+        print(f"report: {doc}")
     return status
-

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from diffdlo.files import replacing
 from .grid import cell_dir
 from .stats import t_quantile
 
@@ -154,7 +155,8 @@ def _pyplot():
 
 def _save(plt, fig, path: Path, dpi: int = 60) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
+    with replacing(path, suffix=path.suffix) as tmp:          # a reader never sees half a picture
+        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or None)
     plt.close(fig)
     return path
 

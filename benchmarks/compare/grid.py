@@ -34,6 +34,12 @@ def _flags(args: dict[str, Any]) -> list[str]:
     return out
 
 
+def grid_entry(grid: dict[str, Any], spec: dict[str, Any], variant: dict[str, Any]) -> dict[str, Any]:
+    """What compare.yaml says of a cell: its variant's entry and the grid-wide settings it uses."""
+    return {"kind": spec["kind"], "args": dict(variant.get("args") or {}), "set": dict(variant.get("set") or {}),
+            "episodes": grid["episodes"], "eval_seed_base": grid["eval_seed_base"]}
+
+
 def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=None, targets=None,
                 seeds=None, learner_device: str | None = None) -> list[dict[str, Any]]:
     """Every (method, variant, target, seed) cell of the grid after the filters, with its commands.
@@ -58,7 +64,8 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
                     eval_seed = int(grid["eval_seed_base"]) + 1000 * int(seed)
                     cell = {"method": method, "variant": variant, "target": target, "seed": seed,
                             "kind": spec["kind"], "dir": str(d), "grid": grid["name"], "eval_seed": eval_seed,
-                            "cwd": str(Path.cwd())}   # relative paths are relative to it (also on Ray workers)
+                            "cwd": str(Path.cwd()),   # relative paths are relative to it (also on Ray workers)
+                            "grid_entry": grid_entry(grid, spec, v)}   # stored in cell.json with the argv
                     if spec["kind"] == "agent" and target in grid.get("heldout", {}):
                         continue          # learners never train on a held-out shape (their rows: results "heldout")
                     if spec["kind"] == "planner":

@@ -1,5 +1,6 @@
-"""The markdown report (docs/RESULTS.md): one table per task from the finished cells, the exact commands per seed,
-the cost section and the figures."""
+"""The markdown report (where --report names; docs/RESULTS.md for the committed one): one table per task from the
+finished cells, the exact commands per seed, the cost section and the figures. A finished cell whose settings differ
+from the grid's now is left out of the tables and named at the top."""
 from __future__ import annotations
 
 import json
@@ -11,7 +12,9 @@ from typing import Any
 
 from .costs import cost_section, row_cost
 from .figures import make_cost_figures, make_figures
+from diffdlo.files import write_text_atomic
 from .grid import build_cells, cell_dir, command_line
+from .settings import changed_cells, describe_changes
 from .stats import row_stats
 
 COLUMNS = ["method", "variant", "seeds × episodes", "success @1 cm: t-CI over seeds; Wilson pooled",
@@ -78,7 +81,7 @@ def machine_label(res: dict[str, Any]) -> str:
     return label + (f"; {m['note']}" if m.get("note") else "")
 
 
-def _preamble(grid: dict[str, Any], out: Path, loaded: list) -> list[str]:
+def _preamble(grid: dict[str, Any], out: Path, loaded: list, doc: Path) -> list[str]:
     """Title, quick-run warning, definitions, budgets and the cells not run yet."""
     cells = [c for c, _ in loaded]
     n_done = sum(r is not None for _, r in loaded)
@@ -91,7 +94,8 @@ def _preamble(grid: dict[str, Any], out: Path, loaded: list) -> list[str]:
                   "`python -m benchmarks.compare`.", ""]
     lines += [f"Grid `{grid['name']}` of `benchmarks/compare.yaml`: {n_done} of {len(cells)} cells finished "
               f"(cell directories under `{out}`). Written by `python -m benchmarks.compare"
-              f"{' --quick' if quick else ''} --report`.", "",
+              f"{' --quick' if quick else ''} --out {shlex.quote(str(out))} --report-only "
+              f"--report {shlex.quote(str(doc))}`.", "",
               "Definitions. A row aggregates the finished seeds of one method/variant on one task; every seed's "
               f"{grid['episodes']} evaluation episodes start from "
               f"`env.reset(seed={grid['eval_seed_base']} + 1000·seed + i)`. "
@@ -151,12 +155,19 @@ def _row(grid: dict[str, Any], out: Path, target: str, key: tuple[str, str, str]
 
 def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures: Path | str | None,
                  cells: list[dict[str, Any]] | None = None) -> dict[str, Any]:
-    """docs/RESULTS.md (and figures) from the finished cells only. Returns {target: [row dicts]}."""
+    """The report ``doc`` (and figures in ``figures``) from the finished cells only; a finished cell whose settings
+    differ from the grid's now counts as not run and is named at the top. Returns {target: [row dicts]}."""
     out, doc = Path(out), Path(doc)
     cells = build_cells(grid, out) if cells is None else cells
-    loaded = [(c, _load(c)) for c in cells]
+    changed = changed_cells(cells)
+    stale = {id(c) for c, _ in changed}
+    loaded = [(c, None if id(c) in stale else _load(c)) for c in cells]
     done = [(c, r) for c, r in loaded if r is not None]
-    lines = _preamble(grid, out, loaded)
+    lines = _preamble(grid, out, loaded, doc)
+    if changed:
+        lines += [f"> **{len(changed)} finished cell(s) ran with other settings than the grid's now: not in the "
+                  "tables** (rerun them with `--rerun-changed`): "
+                  + "; ".join(describe_changes(c, ch) for c, ch in changed), ""]
     table: dict[str, list[dict[str, Any]]] = {}
     costs: dict[str, list[dict[str, Any]]] = {}
     for target in grid["targets"]:
@@ -185,6 +196,5 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
             quick = grid["name"] == "quick"
             lines += ["## Figures" + (" (quick run: format only, not results)" if quick else ""), ""]
             lines += [f"![{f.stem}]({rel}/{f.name})" for f in figs] + [""]
-    doc.parent.mkdir(parents=True, exist_ok=True)
-    doc.write_text("\n".join(lines) + "\n")
+    write_text_atomic(doc, "\n".join(lines) + "\n")
     return table

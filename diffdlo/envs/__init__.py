@@ -7,17 +7,21 @@
 """
 from gymnasium.envs.registration import register, registry
 
-from .core import ACTION_TYPES, DEFAULT_VIEW_SIZE, OBS_TYPES, BatchedShapeControl
+from ..task import ACTION_TYPES, OBS_TYPES
+from .core import DEFAULT_VIEW_SIZE, BatchedShapeControl
 from .shape_control import ShapeControlEnv
 from .state import EnvState
 from .vector import ShapeControlVectorEnv
 
 ENV_ID = "DiffDLO/ShapeControl-v0"
 
+# gymnasium's time limit of the registered spec: the default params' episode length (ShapeControlEnv's docstring
+# says how it meets the env's own max_steps).
+MAX_EPISODE_STEPS = 100
+
 if ENV_ID not in registry:
     register(id=ENV_ID, entry_point="diffdlo.envs.shape_control:ShapeControlEnv",
-             vector_entry_point="diffdlo.envs.vector:ShapeControlVectorEnv")
+             vector_entry_point="diffdlo.envs.vector:ShapeControlVectorEnv", max_episode_steps=MAX_EPISODE_STEPS)
 
-__all__ = ["ACTION_TYPES", "DEFAULT_VIEW_SIZE", "ENV_ID", "OBS_TYPES", "BatchedShapeControl", "EnvState",
-           "ShapeControlEnv",
-           "ShapeControlVectorEnv"]
+__all__ = ["ACTION_TYPES", "DEFAULT_VIEW_SIZE", "ENV_ID", "MAX_EPISODE_STEPS", "OBS_TYPES", "BatchedShapeControl",
+           "EnvState", "ShapeControlEnv", "ShapeControlVectorEnv"]

@@ -19,11 +19,12 @@ from gymnasium.utils import seeding
 
 from .. import image as rimage
 from .. import task
-from ..params import CableParams, load_params
-from ..rewards import REWARDS
-from ..shapes import CURVE_MAX_TURN_DEG, TARGET_NAMES, random_curve, target_shape
+from ..params import CableParams
+from ..shapes import (CURVE_MAX_TURN_DEG, TARGET_NAMES, check_finite_nodes, check_link_lengths, check_shape,
+                      target_shape)
 from ..simulator import Simulator
-from ..task import ACTION_DIMS, ACTION_TYPES, EXIT_RULES, OBS_TYPES
+from ..task import ACTION_DIMS
+from .options import _choice_error, check_actions, checked_options
 from .state import EnvState
 
 # Side [m] of the square view window of image observations and pixel actions, centred at the origin: x, y in
@@ -34,37 +35,6 @@ DEFAULT_VIEW_SIZE = 1.0
 RENDER_SIZE = 256
 INFO_KEYS = ("shape_error", "orientation_error", "is_success", "node", "substeps")
 AUTORESET_MODES = (None, "next_step", "same_step")
-
-
-def _choice_error(what: str, value: Any, allowed: Sequence[Any]) -> ValueError:
-    return ValueError(f"unknown {what} {value!r}: use one of {list(allowed)}")
-
-
-def resolve_params(params: CableParams | str | Path | None) -> CableParams:
-    """A CableParams, a params name (``params/<name>.yaml``), a YAML path, or None (``cable``)."""
-    if params is None:
-        return load_params("cable")
-    if isinstance(params, CableParams):
-        return params
-    if isinstance(params, (str, Path)):
-        return load_params(params)
-    raise TypeError(f"params must be a CableParams, a params name or a YAML path, got {type(params).__name__}")
-
-
-def check_actions(actions: Any, shape: tuple[int, ...]) -> torch.Tensor:
-    """Validate an action batch: exact shape, finite values. Returns a float64 tensor (not yet clipped)."""
-    try:
-        a = actions.detach() if torch.is_tensor(actions) else torch.as_tensor(np.asarray(actions, dtype=np.float64))
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"action must be an array of numbers of shape {shape}, got {actions!r}") from exc
-    if not (a.is_floating_point() or a.dtype in (torch.int64, torch.int32, torch.bool)):
-        raise ValueError(f"action must hold real numbers, got dtype {a.dtype}")
-    if tuple(a.shape) != tuple(shape):
-        raise ValueError(f"action must have shape {tuple(shape)}, got {tuple(a.shape)}: {actions!r}")
-    a = a.to(torch.float64)
-    if not bool(torch.isfinite(a).all()):
-        raise ValueError(f"action contains NaN or inf: {a.cpu().numpy().tolist()}")
-    return a
 
 
 class BatchedShapeControl:
@@ -87,6 +57,11 @@ class BatchedShapeControl:
       reward: one of diffdlo.REWARDS ("position_orientation" eq 2.9-2.11, "abs_diff" eq 2.7, "delta_gain" eq 2.8,
         "shape_gain": ours, the centimetres of shape error a move removed).
       max_steps, success_tol: default params.max_episode_steps and params.success_tol.
+      max_episode_steps: gymnasium's time limit (``make_vec(..., max_episode_steps=)``; the registered spec's is
+        100): episodes are truncated after min(max_steps, max_episode_steps) moves, as ``gymnasium.make``'s
+        TimeLimit wrapper over the env's own truncation does. None (default): max_steps alone.
+      action_scale: s of the drag, dx, dy in [-s, s] [m] (default params.action_scale = 0.1): overrides the
+        params' value, > 0.
       params: CableParams, params name or YAML path (resolved here, once). image_size: S (default 64). view_size:
         side [m] of the square view window centred at the origin (default 1.0). device, dtype, backend: of the
         simulator (backend "torch" forces the eager reference path).
@@ -101,7 +76,8 @@ class BatchedShapeControl:
       mark_end: image observations draw a dot on node 0 of the rope (green) and of the target (amber), so a rope
         and its reversal look different (default False: the thesis's pictures, where they do not).
       start: None (a random start shape, settled: thesis model.free) or a fixed (N, 2) start shape placed as is
-        after every reset (custom easy tasks).
+        after every reset (custom easy tasks): finite, with no two consecutive nodes closer than 10% of the rest
+        length (ValueError naming the nodes otherwise).
     Episode end: diffdlo.task.step_outcome (Algorithm 2 with the error metric). ``info["is_success"]`` tells a
     success from a failure: ``terminated`` alone does not, under on_exit="fail".
     """
@@ -112,44 +88,14 @@ class BatchedShapeControl:
                  view_size: float = DEFAULT_VIEW_SIZE, device: torch.device | str = "cpu",
                  dtype: torch.dtype = torch.float32, backend: str = "auto", success_bonus: float | None = None,
                  step_penalty: float = 0.0, on_exit: str = "truncate", exit_penalty: float = 0.0,
-                 curve_max_turn_deg: float = CURVE_MAX_TURN_DEG, mark_end: bool = False, start: Any = None):
-        if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
-        if not isinstance(obs_type, str) or obs_type not in OBS_TYPES:
-            raise _choice_error("obs_type", obs_type, OBS_TYPES)
-        if not isinstance(action_type, str) or action_type not in ACTION_TYPES:
-            raise _choice_error("action_type", action_type, ACTION_TYPES)
-        if not isinstance(reward, str) or reward not in REWARDS:
-            raise _choice_error("reward", reward, REWARDS)
-        self.params = p = resolve_params(params)
-        if max_steps is None:
-            max_steps = p.max_episode_steps
-        if not isinstance(max_steps, (int, np.integer)) or isinstance(max_steps, bool) or max_steps < 1:
-            raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
-        success_tol = p.success_tol if success_tol is None else success_tol
-        if not isinstance(success_tol, (int, float)) or not success_tol > 0 or not np.isfinite(success_tol):
-            raise ValueError(f"success_tol must be a positive number [m], got {success_tol!r}")
-        if not isinstance(image_size, (int, np.integer)) or isinstance(image_size, bool) or image_size < 8:
-            raise ValueError(f"image_size must be an integer >= 8, got {image_size!r}")
-        if not isinstance(view_size, (int, float)) or not view_size > 0 or not np.isfinite(view_size):
-            raise ValueError(f"view_size must be a positive number [m], got {view_size!r}")
-        success_bonus = p.success_bonus if success_bonus is None else success_bonus
-        for name, v in (("success_bonus", success_bonus), ("step_penalty", step_penalty),
-                        ("exit_penalty", exit_penalty)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-                raise ValueError(f"{name} must be a finite number, got {v!r}")
-        if not isinstance(on_exit, str) or on_exit not in EXIT_RULES:
-            raise _choice_error("on_exit", on_exit, EXIT_RULES)
-        try:
-            random_curve(1, p, torch.Generator().manual_seed(0), max_turn_deg=curve_max_turn_deg)   # checks the value
-        except ValueError as exc:
-            raise ValueError(f"curve_max_turn_deg: {exc}") from exc
-        self.curve_max_turn_deg = float(curve_max_turn_deg)
-        if not isinstance(mark_end, (bool, np.bool_)):
-            raise ValueError(f"mark_end must be True or False, got {mark_end!r}")
-        self.mark_end = bool(mark_end)
-        self.rules = task.EpisodeRules(reward, float(success_tol), int(max_steps), float(success_bonus),
-                                       float(step_penalty), on_exit, float(exit_penalty), tuple(p.workspace))
+                 curve_max_turn_deg: float = CURVE_MAX_TURN_DEG, mark_end: bool = False, start: Any = None,
+                 max_episode_steps: int | None = None, action_scale: float | None = None):
+        p, self.rules = checked_options(
+            num_envs, obs_type, action_type, reward, max_steps, success_tol, params, image_size, view_size,
+            success_bonus, step_penalty, on_exit, exit_penalty, curve_max_turn_deg, max_episode_steps=max_episode_steps,
+            mark_end=mark_end, action_scale=action_scale)
+        self.params = p
+        self.curve_max_turn_deg, self.mark_end = float(curve_max_turn_deg), bool(mark_end)
         self.num_envs = int(num_envs)
         self.obs_type, self.action_type = obs_type, action_type
         self.image_size, self.view_size = int(image_size), float(view_size)
@@ -188,9 +134,8 @@ class BatchedShapeControl:
         return self.rules.reward
 
     def _check_start(self, start: Any) -> torch.Tensor:
-        s = torch.as_tensor(np.load(start) if isinstance(start, (str, Path)) else np.asarray(start))
-        if tuple(s.shape) != (self.params.n_nodes, 2):
-            raise ValueError(f"start shape must be ({self.params.n_nodes}, 2), got {tuple(s.shape)}")
+        s = torch.as_tensor(np.load(start) if isinstance(start, (str, Path)) else np.asarray(start, dtype=np.float64))
+        check_shape(s.to(torch.float64), self.params, "start shape")
         return s.to(device=self.device, dtype=self.dtype)
 
     def set_target(self, spec: Any) -> None:
@@ -218,6 +163,9 @@ class BatchedShapeControl:
             s.steps = torch.as_tensor(steps, dtype=torch.int64, device=self.device).expand(b).clone()
         s.pos, s.target = s.pos.to(**kw), s.target.to(**kw)
         self.sim._check_state("pos", s.pos)
+        if target is not None:
+            check_finite_nodes(s.target, "target")
+            check_link_lengths(s.target, self.params.rest_length, "target")
         if s.pos.shape != (b, n, 2) or s.target.shape != (b, n, 2):
             raise ValueError(f"pos and target must have shape ({b}, {n}, 2), got {tuple(s.pos.shape)} and "
                              f"{tuple(s.target.shape)}")

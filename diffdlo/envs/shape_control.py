@@ -7,7 +7,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from .core import BatchedShapeControl, _choice_error, check_actions
+from .core import BatchedShapeControl
+from .options import _choice_error, check_actions
 
 
 def to_numpy(x: Any, index: int | None = None) -> Any:
@@ -29,6 +30,14 @@ class ShapeControlEnv(gym.Env):
     ``info``: shape_error [m], orientation_error [rad], is_success, node (grasped node, -1 after reset), substeps.
     ``reset(seed=s, options={"target": spec})``: seeded random start shape + settle; the target spec is kept.
     A diverged simulation raises diffdlo.SimulationError (never a NaN observation).
+
+    Episode length under ``gymnasium.make``: the registered spec has max_episode_steps = 100 (the params' default
+    max_steps), so ``make`` wraps the env in gymnasium's TimeLimit, which truncates at the same step as the env's
+    own truncation by default (both after 100 moves) and so never fights it. An episode lasts min(max_steps,
+    max_episode_steps) moves: ``make(..., max_steps=50)`` and ``make(..., max_episode_steps=50)`` both end after 50;
+    for episodes longer than 100 pass both (``max_steps=200, max_episode_steps=200``) or ``max_episode_steps=-1``
+    (no TimeLimit). ``make_vec`` applies the same rule (``ShapeControlVectorEnv``). Built directly, the env
+    takes ``max_episode_steps`` as well, with the same meaning.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}

@@ -1,0 +1,70 @@
+"""``python -m diffdlo --info``: what this installation runs on, for bug reports and for checking a setup.
+
+Prints the version, the simulator backend in use (the fused C++ kernel, or the eager torch path and why), the torch
+version, the devices, torch's threads and the folder the parameter files are read from.
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import warnings
+
+import torch
+
+import diffdlo
+from diffdlo import kernel
+from diffdlo.params import PARAMS_DIR
+
+
+def backend_line() -> str:
+    """The CPU simulator backend that ``backend="auto"`` picks, with the reason where it is the slow one."""
+    with warnings.catch_warnings():         # the line below says the same as the warning
+        warnings.simplefilter("ignore", kernel.KernelUnavailableWarning)
+        reason = kernel.unavailable_reason()
+    if reason is None:
+        return (f"fused C++ kernel ({kernel.lanes()} ropes per lane group; library {kernel.library_path()}); "
+                f"the PID controller, frame recording and non-CPU devices use the eager torch path")
+    return (f"eager torch path, about 100-500x slower per move: the fused C++ kernel is unavailable ({reason}); "
+            f"install g++ (or clang++) or set $CXX, then rerun")
+
+
+def devices_line() -> str:
+    """Every device a Simulator can be put on."""
+    devices = ["cpu"]
+    if torch.cuda.is_available():
+        devices += [f"cuda:{i} ({torch.cuda.get_device_name(i)})" for i in range(torch.cuda.device_count())]
+    if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
+        devices.append("mps")
+    return ", ".join(devices)
+
+
+def info() -> str:
+    """The report ``--info`` prints, one ``name: value`` per line."""
+    rows = {
+        "diffdlo": f"{diffdlo.__version__} ({diffdlo.__file__})",
+        "simulator backend": backend_line(),
+        "torch": torch.__version__,
+        "devices": devices_line(),
+        "torch threads": f"{torch.get_num_threads()} intra-op, {torch.get_num_interop_threads()} inter-op",
+        "params files": str(PARAMS_DIR),
+        "python": f"{platform.python_version()} on {platform.platform()}",
+    }
+    width = max(map(len, rows))
+    return "\n".join(f"{name + ':':<{width + 1}} {value}" for name, value in rows.items())
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m diffdlo",
+                                     description="Report what this diffdlo installation runs on.")
+    parser.add_argument("--info", action="store_true", help="print the version, backend, devices and paths in use")
+    args = parser.parse_args(argv)
+    if not args.info:
+        parser.print_help()
+        return 0
+    print(info())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,142 @@
+"""agents.load_policy and python -m agents.evaluate: a trained run's checkpoint acts on the gymnasium env, reproduces
+the run's own final evaluation, is evaluated and watched from the command line; broken checkpoints are named."""
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import agents
+from agents import evaluate as evaluate_cli
+from agents import planet, ppo, sac
+from agents.checkpoints import CHECKPOINT
+from agents.config import load_config
+from agents.evaluation import evaluate
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
+TASK = dict(param_overrides=PO, max_steps=4, num_envs=4, eval_episodes=6, checkpoint_every=10**9, eval_every=10**9)
+TINY = {   # a few seconds each; one evaluation, at the end (evaluations in between would move PlaNet's CEM generators)
+    "sac": (sac, sac.SACConfig, "sac", dict(total_steps=64, hidden=[16, 16], head_hidden=8, batch_size=16,
+                                            learning_starts=32, buffer_size=256)),
+    "sac-gaussian": (sac, sac.SACConfig, "sac-sb3-default", dict(total_steps=64, hidden=[16, 16], batch_size=16,
+                                                                  learning_starts=32, buffer_size=256)),
+    "ppo": (ppo, ppo.PPOConfig, "ppo", dict(total_steps=64, hidden=[16, 16], n_steps=8, batch_size=16,
+                                            n_epochs=1)),
+    "planet": (planet, planet.PlaNetConfig, "planet", dict(total_steps=48, members=2, model_hidden=[16, 16],
+                                                            horizon=1, candidates=8, elites=2, iterations=2,
+                                                            seed_episodes=2, train_every=16, updates_per_train=2,
+                                                            batch_size=8, openloop_episodes=2,
+                                                            openloop_context=1)),
+    "planet-rssm": (planet, planet.PlaNetConfig, "planet-rssm", dict(total_steps=48, deter=8, stoch=4, hidden=8,
+                                                                      embed=8, horizon=1, candidates=8, elites=2,
+                                                                      iterations=2, seed_episodes=2, train_every=16,
+                                                                      updates_per_train=2, batch_size=4,
+                                                                      chunk_length=2, plan_objective="shape",
+                                                                      openloop_episodes=2, openloop_context=1)),
+}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """name -> the folder of a finished tiny run."""
+    torch.set_num_threads(1)
+    out = {}
+    for name, (module, cls, preset, kw) in TINY.items():
+        folder = tmp_path_factory.mktemp(name)
+        module.train(load_config(cls, preset, {**TASK, **kw}), folder, progress=False)
+        out[name] = folder
+    return out
+
+
+@pytest.mark.parametrize("name", list(TINY))
+def test_loaded_policy_acts_on_a_gym_observation_and_reproduces_the_runs_evaluation(name, runs):
+    policy = agents.load_policy(runs[name])
+    assert policy.algo == name.split("-")[0] and policy.step == TINY[name][3]["total_steps"]
+    env = gym.make("DiffDLO/ShapeControl-v0", **policy.env_kwargs())
+    obs, _ = env.reset(seed=3)
+    policy.reset()
+    for _ in range(2):
+        action = policy(obs)
+        assert action.dtype == np.float32 and action.shape == env.action_space.shape
+        assert np.all((action >= 0) & (action <= 1))
+        obs, *_ = env.step(action)
+    if not name.startswith("planet"):                        # deterministic: the same observation, the same action
+        assert np.array_equal(policy(obs), policy(obs))
+
+    own = json.loads((runs[name] / "results.json").read_text())
+    cfg = policy.config
+    eval_env = policy.make_env()
+    again = evaluate(policy.batched(eval_env), eval_env, cfg.run.eval_episodes, seed=cfg.run.eval_seed)
+    assert again["success_rate"] == own["success_rate"]
+    for mine, theirs in zip(again["episodes"], own["episodes"], strict=True):
+        assert (mine["success"], mine["steps"], mine["target_name"]) == \
+               (theirs["success"], theirs["steps"], theirs["target_name"])
+        assert mine["final_error"] == pytest.approx(theirs["final_error"], abs=1e-6)
+
+
+def test_wrong_observation_and_planet_without_env_are_named(runs):
+    with pytest.raises(ValueError, match="does not fit the run's task"):
+        agents.load_policy(runs["sac"])(np.zeros((6, 2), np.float32))
+    with pytest.raises(ValueError, match="pass it"):
+        agents.load_policy(runs["planet"]).batched()
+
+
+@pytest.mark.parametrize("name", ["sac", "planet"])
+def test_evaluate_command_writes_results_pictures_and_refuses_to_overwrite(name, runs, tmp_path, capsys):
+    out = tmp_path / "eval"
+    argv = [str(runs[name]), "--episodes", "3", "--target", "diagonal", "--seed", "5", "--out", str(out),
+            "--gif-episodes", "2"]
+    assert evaluate_cli.main(argv) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["method"] == name and res["step"] == TINY[name][3]["total_steps"] and res["target"] == "diagonal"
+    assert len(res["episodes"]) == 3 and 0 <= res["success_rate"] <= 1
+    assert {e["target_name"] for e in res["episodes"]} == {"diagonal"}
+    assert set(res["episodes"][0]) == {"success", "steps", "final_error", "target_name"}
+    assert (out / "eval_episodes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "episodes.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
+    assert "success rate" in capsys.readouterr().out
+
+    assert evaluate_cli.main(argv) == 2                       # an earlier evaluation is kept
+    err = capsys.readouterr().err
+    assert "--overwrite" in err and len(err.strip().splitlines()) == 1
+    assert evaluate_cli.main(argv + ["--overwrite", "--no-gif"]) == 0
+
+
+def test_evaluate_command_default_out_and_bad_flags(runs, capsys):
+    assert evaluate_cli.main([str(runs["ppo"]), "--no-gif"]) == 0
+    cfg = agents.load_policy(runs["ppo"]).config
+    assert (runs["ppo"] / f"evaluate-random-s{cfg.run.eval_seed}" / "results.json").exists()
+    capsys.readouterr()
+    for bad, named in ((["--episodes", "0"], "'0'"), (["--target", "zigzag"], "zigzag"), (["--seed", "x"], "'x'"),
+                       (["--bogus"], "--bogus")):
+        assert evaluate_cli.main([str(runs["ppo"]), *bad]) == 2, bad
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and named in err, err
+
+
+def test_broken_checkpoints_give_one_clear_error(runs, tmp_path, capsys):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        agents.load_policy(tmp_path / "nothing")
+    good = (runs["sac"] / CHECKPOINT).read_bytes()
+    truncated = tmp_path / "truncated" / CHECKPOINT
+    truncated.parent.mkdir()
+    truncated.write_bytes(good[: len(good) // 2])
+    with pytest.raises(ValueError, match="not a readable checkpoint") as exc:
+        agents.load_policy(truncated.parent)
+    assert str(truncated) in str(exc.value)
+
+    ck = torch.load(runs["sac"] / CHECKPOINT, weights_only=False)
+    for change, message in (({"algo": "dqn"}, "unknown algo 'dqn'"), ({"algo": "ppo"}, "without \\['agent'\\]"),
+                            ({"config": {"lr": 1e-3, "warp": 9}}, "does not fit"),
+                            ({"config": {**ck["config"], "hidden": [8]}}, "'actor' weights do not fit")):
+        folder = tmp_path / next(iter(change))
+        folder.mkdir(exist_ok=True)
+        torch.save({**ck, **change}, folder / CHECKPOINT)
+        with pytest.raises(ValueError, match=message):
+            agents.load_policy(folder)
+    assert evaluate_cli.main([str(truncated.parent)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "not a readable checkpoint" in err
