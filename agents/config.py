@@ -178,6 +178,17 @@ class InputOptions:
         _positive_int("augment_shift", self.augment_shift, least=0)
 
 
+def check_model_free(cfg) -> None:
+    """The checks SAC's and PPO's configs share: their task, run and input options, the policy head, the type of
+    every own field and the hidden layer sizes."""
+    cfg.task.check()
+    cfg.run.check()
+    cfg.inputs.check(cfg.task)
+    check_policy(cfg.policy, cfg.task)
+    check_types(cfg)
+    check_layer_sizes("hidden", cfg.hidden)
+
+
 def check_policy(policy: str, task: TaskOptions) -> None:
     """SAC's and PPO's policy head: "hybrid" (node categorical + per-node drag) needs node actions."""
     _choice("policy", policy, POLICIES)

@@ -39,8 +39,7 @@ import torch.nn as nn
 from agents import hybrid
 from agents.buffer import ReplayBuffer
 from agents.cli import run_cli
-from agents.config import (InputOptions, RunOptions, TaskOptions, check_layer_sizes, check_policy, check_ranges,
-                           check_types, part)
+from agents.config import InputOptions, RunOptions, TaskOptions, check_model_free, check_ranges, part
 from agents.networks import Features, mlp, shift_images
 from agents.run import Run, learner
 
@@ -69,12 +68,7 @@ class PPOConfig:
     hidden: list = dataclasses.field(default_factory=lambda: [64, 64])
 
     def check(self) -> None:
-        self.task.check()
-        self.run.check()
-        self.inputs.check(self.task)
-        check_policy(self.policy, self.task)
-        check_types(self)
-        check_layer_sizes("hidden", self.hidden)
+        check_model_free(self)
         check_ranges(self, {"lr": "(0, inf)", "n_steps": "[1, inf)", "batch_size": "[1, inf)", "n_epochs": "[1, inf)",
                             "gamma": "[0, 1]", "gae_lambda": "[0, 1]", "clip_range": "(0, inf)", "ent_coef": "[0, inf)",
                             "vf_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "log_std_init": "(-inf, inf)"})

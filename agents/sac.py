@@ -40,8 +40,7 @@ from agents import hybrid
 from agents.buffer import ReplayBuffer
 from agents.checkpoints import replay_rows
 from agents.cli import run_cli
-from agents.config import (InputOptions, RunOptions, TaskOptions, check_layer_sizes, check_policy, check_ranges,
-                           check_types, part)
+from agents.config import InputOptions, RunOptions, TaskOptions, check_model_free, check_ranges, part
 from agents.networks import Features, mlp, shift_images
 from agents.run import Run, learner
 
@@ -70,12 +69,7 @@ class SACConfig:
     log_std_max: float = 2.0
 
     def check(self) -> None:
-        self.task.check()
-        self.run.check()
-        self.inputs.check(self.task)
-        check_policy(self.policy, self.task)
-        check_types(self)
-        check_layer_sizes("hidden", self.hidden)
+        check_model_free(self)
         check_ranges(self, {"lr": "(0, inf)", "buffer_size": "[1, inf)", "batch_size": "[1, inf)", "tau": "(0, 1]",
                             "gamma": "[0, 1]", "learning_starts": "[0, inf)", "train_freq": "[1, inf)",
                             "gradient_steps": "[1, inf)", "ent_coef_init": "(0, inf)", "target_entropy": "(-inf, inf)",

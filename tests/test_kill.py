@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parent.parent
@@ -68,8 +69,70 @@ def test_killed_and_resumed_equals_uninterrupted(algo, point, tmp_path):
     whole, killed = tmp_path / "whole", tmp_path / "killed"
     run(command(algo, whole, *TINY, *RUNS[algo]))
     kill_after_checkpoints(command(algo, killed, *TINY, *RUNS[algo]), killed, *point)
-    assert (killed / "checkpoint.pt").exists()
-    assert not (killed / ".lock").exists() or True     # a killed run leaves its lock; the resume takes it over
     total = RUNS[algo][RUNS[algo].index("--total-steps") + 1]
+    saved = torch.load(killed / "checkpoint.pt", weights_only=False)["step"]
+    assert 0 < saved < int(total) and not (killed / "results.json").exists()   # killed mid-run, not at its end
+    assert (killed / ".lock").exists()                  # a killed run leaves its lock: the resume takes it over
     run(command(algo, killed, "--resume", "--total-steps", total, "--no-progress"))
     same_results(whole, killed)
+
+
+def descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (children in other process groups included), from /proc."""
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    out, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            out.append(child)
+            todo.append(child)
+    return out
+
+
+TIMINGS = ("wall", "plan_s", "eval_s", "ms_per", "plan_ms", "plan_env_steps", "config", "train_s")
+
+
+def without_timings(x):
+    """A results record without its wall-clock figures (at any depth) and the run's own command line."""
+    if isinstance(x, dict):
+        return {k: without_timings(v) for k, v in x.items() if not k.startswith(TIMINGS)}
+    if isinstance(x, list):
+        return [without_timings(v) for v in x]
+    return x
+
+
+def cell_results(root: Path) -> dict[str, dict]:
+    found = {}
+    for path in sorted(root.rglob("results.json")):
+        rel = str(path.relative_to(root))
+        if "/ep" not in rel and "superseded" not in rel:
+            found[rel] = without_timings(json.loads(path.read_text()))
+    return found
+
+
+@pytest.mark.parametrize("after_cells", [2, 7])
+def test_compare_killed_with_its_cells_and_rerun_equals_uninterrupted(after_cells, tmp_path):
+    """SIGKILL of compare and of every cell process it started (a machine that dies), after some cells finished;
+    the rerun on the same --out finishes the grid with the same cell results as an uninterrupted run."""
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    cmd = [sys.executable, "-m", "benchmarks.compare", "--quick", "--jobs", "1", "--no-progress", "--no-report"]
+    run([*cmd, "--out", str(whole)])
+    proc = subprocess.Popen([*cmd, "--out", str(killed)], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    deadline = time.time() + 300
+    while proc.poll() is None and time.time() < deadline and len(cell_results(killed)) < after_cells:
+        time.sleep(0.01)
+    for pid in [proc.pid, *descendants(proc.pid)]:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    proc.wait()
+    assert len(cell_results(killed)) < len(cell_results(whole))          # killed before the grid was done
+    run([*cmd, "--out", str(killed)])
+    assert cell_results(killed) == cell_results(whole)
