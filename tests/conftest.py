@@ -20,6 +20,13 @@ def params():
     return diffdlo.load_params("cable")
 
 
+@pytest.fixture(scope="session")
+def small():
+    """6 nodes, 0.15 m: a move costs a few ms."""
+    return dataclasses.replace(diffdlo.load_params("cable"), n_nodes=6, length=0.15, max_speed=1.0,
+                               settle_max_substeps=30, settle_check_every=10)
+
+
 @pytest.fixture
 def sim64(params):
     return diffdlo.Simulator(params, dtype=torch.float64)

@@ -1,5 +1,4 @@
 """DiffDLO/ShapeControl-v0: gymnasium/SB3 API checks, rewards, episode ends, vectorization, images, bad input."""
-import dataclasses
 import math
 import warnings
 
@@ -14,14 +13,6 @@ import diffdlo
 from diffdlo.envs import ACTION_TYPES, ENV_ID, OBS_TYPES, BatchedShapeControl, ShapeControlVectorEnv
 
 ZERO_DRAG = [0.0, 0.5, 0.5]          # node 0, dx = dy = 0
-
-
-@pytest.fixture(scope="module")
-def small():
-    """6 nodes, 0.15 m: a move costs a few ms."""
-    p = diffdlo.load_params("cable")
-    return dataclasses.replace(p, n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30,
-                               settle_check_every=10)
 
 
 def make(small, **kw):

@@ -17,14 +17,6 @@ from diffdlo.shapes import straight_shape
 ZERO_DRAG = [0.0, 0.5, 0.5]          # node 0, dx = dy = 0
 
 
-@pytest.fixture(scope="module")
-def small():
-    """6 nodes, 0.15 m: a move costs a few ms."""
-    p = diffdlo.load_params("cable")
-    return dataclasses.replace(p, n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30,
-                               settle_check_every=10)
-
-
 def make_vec(small, num_envs=2, **kw):
     return gym.make_vec(ENV_ID, num_envs=num_envs, vectorization_mode="vector_entry_point", params=small, **kw)
 

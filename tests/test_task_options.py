@@ -17,14 +17,6 @@ ZERO_DRAG = [0.0, 0.5, 0.5]          # node 0, dx = dy = 0
 EPS_DEG = 1e-7
 
 
-@pytest.fixture(scope="module")
-def small():
-    """6 nodes, 0.15 m: a move costs a few ms."""
-    p = diffdlo.load_params("cable")
-    return dataclasses.replace(p, n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30,
-                               settle_check_every=10)
-
-
 def turns_deg(pos: torch.Tensor) -> torch.Tensor:
     """(B, N, 2) -> (B, N-2) turning angle at each interior node [deg], wrapped to (-180, 180]."""
     d = pos[:, 1:] - pos[:, :-1]
@@ -268,6 +260,8 @@ def test_held_out_target_files(params):
     torch.testing.assert_close(th[half:], torch.full_like(th[half:], 120.0 / (params.n_nodes - 2 - half)),
                                rtol=0, atol=1e-4)
     assert float(th.sum()) == pytest.approx(120.0, abs=1e-3)
+    assert float(tw.sum()) == pytest.approx(0.0, abs=1e-2)            # two whole sine periods: it ends as it began
+    assert 19.0 < float(tw.abs().max()) < 21.0                        # 60 sin(20 deg) = 20.5 deg at most per node
     d = wave[1:] - wave[:-1]
     direction = torch.rad2deg(torch.atan2(d[:, 1], d[:, 0]))
     k = torch.arange(params.n_nodes - 1, dtype=torch.float64)
