@@ -2,6 +2,7 @@
 from .forces import energy, internal_forces, turning_angles
 from .kernel import KernelUnavailableWarning
 from .params import CableParams, ParamsError, load_params
+from .physics import Physics
 from .rewards import (REWARDS, abs_diff, end_to_end_angle, is_success, orientation_error, pairwise_shape_term,
                       reward, reward_abs_diff, reward_delta_gain, reward_position_orientation, reward_shape_gain,
                       shape_error)
@@ -12,7 +13,7 @@ from . import envs  # registers DiffDLO/ShapeControl-v0
 __version__ = "0.1.0"     # setup.cfg reads it from here
 
 __all__ = [
-    "CableParams", "KernelUnavailableWarning", "MoveInfo", "ParamsError", "REWARDS", "SimulationError", "Simulator",
+    "CableParams", "KernelUnavailableWarning", "MoveInfo", "ParamsError", "Physics", "REWARDS", "SimulationError", "Simulator",
     "TARGET_FAMILIES", "TARGET_NAMES", "TargetError", "abs_diff", "end_to_end_angle", "energy", "internal_forces",
     "is_success", "load_params", "orientation_error", "pairwise_shape_term", "random_curve", "random_shape", "reward",
     "reward_abs_diff", "reward_delta_gain", "reward_position_orientation", "reward_shape_gain", "shape_error",

@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import math
 
+from typing import Any
+
 import torch
 
 from .params import CableParams
+from .physics import per_rope
 
 
 def clip_drag(delta: torch.Tensor, max_disp: float) -> torch.Tensor:
@@ -56,11 +59,12 @@ def hold_substeps(p: CableParams) -> int:
 
 
 def pid_force(error: torch.Tensor, integral: torch.Tensor, ref_velocity: torch.Tensor, t: float,
-              p: CableParams) -> torch.Tensor:
+              p: CableParams, k_d: Any = None) -> torch.Tensor:
     """(B, 2) force on the grasped node: K_p e + K_i int(e) + ramp(t) K_ff k_d v_ref.
 
     The feedforward pushes the share k_ff of the node's own viscous drag along the reference velocity; it ramps
     up linearly over ff_len (the thesis's force profile) to avoid an impulsive start.
     """
     ramp = min(1.0, t / p.ff_len) if p.ff_len > 0 else 1.0
-    return p.k_p * error + p.k_i * integral + (ramp * p.k_ff * p.k_d) * ref_velocity
+    k_d = p.k_d if k_d is None else per_rope(k_d, 2)          # per-rope damping (diffdlo.physics) if given
+    return p.k_p * error + p.k_i * integral + (ramp * p.k_ff * k_d) * ref_velocity

@@ -9,7 +9,11 @@ right past 90 degrees and regular for a straight rope: d beta / d e = perp(e) / 
 """
 from __future__ import annotations
 
+from typing import Any
+
 import torch
+
+from .physics import per_rope
 
 
 def links(pos: torch.Tensor) -> torch.Tensor:
@@ -28,16 +32,18 @@ def turning_angles(pos: torch.Tensor) -> torch.Tensor:
     return torch.atan2(cross2(a, b), (a * b).sum(-1))
 
 
-def energy(pos: torch.Tensor, rest_length: float, k_s: float, k_b: float) -> torch.Tensor:
-    """(B, N, 2) -> (B,) axial + bending potential energy [J]."""
+def energy(pos: torch.Tensor, rest_length: float, k_s: Any, k_b: Any) -> torch.Tensor:
+    """(B, N, 2) -> (B,) axial + bending potential energy [J]. k_s, k_b: floats or per-rope (B,) tensors."""
     length = links(pos).norm(dim=-1)
     axial = 0.5 * k_s * ((length - rest_length) ** 2).sum(-1)
     bending = 0.5 * k_b * (turning_angles(pos) ** 2).sum(-1)
     return axial + bending
 
 
-def internal_forces(pos: torch.Tensor, rest_length: float, k_s: float, k_b: float) -> torch.Tensor:
-    """(B, N, 2) -> (B, N, 2) axial + bending forces -dE/dpos (no damping, no grasp)."""
+def internal_forces(pos: torch.Tensor, rest_length: float, k_s: Any, k_b: Any) -> torch.Tensor:
+    """(B, N, 2) -> (B, N, 2) axial + bending forces -dE/dpos (no damping, no grasp). k_s, k_b: floats or per-rope
+    (B,) tensors."""
+    k_s, k_b = per_rope(k_s, 2), per_rope(k_b, 2)
     e = links(pos)                                        # (B, N-1, 2)
     length2 = (e * e).sum(-1)                             # (B, N-1)
     length = length2.sqrt()

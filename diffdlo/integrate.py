@@ -8,12 +8,18 @@ Pure functions of tensors; device and dtype follow the inputs.
 """
 from __future__ import annotations
 
+from typing import Any
+
 import torch
+
+from .physics import per_rope
 
 
 def semi_implicit_step(pos: torch.Tensor, vel: torch.Tensor, force: torch.Tensor,
-                       dt: float, node_mass: float, k_d: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """One substep for (B, N, 2) positions and velocities under a total non-damping force."""
+                       dt: float, node_mass: Any, k_d: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """One substep for (B, N, 2) positions and velocities under a total non-damping force. node_mass, k_d: floats
+    or per-rope (B,) tensors."""
+    node_mass, k_d = per_rope(node_mass, 3), per_rope(k_d, 3)
     vel = (vel + (dt / node_mass) * force) / (1.0 + dt * k_d / node_mass)
     return pos + dt * vel, vel
 

@@ -14,6 +14,7 @@ from . import control, kernel, shapes
 from .forces import energy, internal_forces
 from .integrate import max_speed, semi_implicit_step
 from .params import CableParams, load_params
+from .physics import Physics
 
 # A rope farther than this from the origin [m] has diverged (50x the thesis's 2 m workspace).
 DIVERGENCE_RADIUS = 100.0
@@ -147,24 +148,33 @@ class Simulator:
         p = self.params
         return internal_forces(pos, p.rest_length, p.k_s, p.k_b)
 
-    def substep(self, pos: torch.Tensor, vel: torch.Tensor,
-                external: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """One integrator substep of dt (semi-implicit Euler, implicit damping)."""
+    def substep(self, pos: torch.Tensor, vel: torch.Tensor, external: torch.Tensor | None = None,
+                physics: Physics | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """One integrator substep of dt (semi-implicit Euler, implicit damping); ``physics``: per-rope parameters
+        in place of the params' numbers."""
         p = self.params
-        force = self.internal_forces(pos)
+        if physics is None:
+            force = internal_forces(pos, p.rest_length, p.k_s, p.k_b)
+            node_mass, k_d = p.node_mass, p.k_d
+        else:
+            force = internal_forces(pos, p.rest_length, physics.k_s, physics.k_b)
+            node_mass, k_d = physics.node_mass(p.n_nodes), physics.k_d
         if external is not None:
             force = force + external
-        return semi_implicit_step(pos, vel, force, p.dt, p.node_mass, p.k_d)
+        return semi_implicit_step(pos, vel, force, p.dt, node_mass, k_d)
 
-    def integrate(self, pos: torch.Tensor, vel: torch.Tensor | None,
-                  n_substeps: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Free evolution (no grasp) for n_substeps substeps of dt. Returns (pos, vel)."""
+    def integrate(self, pos: torch.Tensor, vel: torch.Tensor | None, n_substeps: int,
+                  physics: Physics | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Free evolution (no grasp) for n_substeps substeps of dt. Returns (pos, vel). ``physics``: per-rope
+        parameters (diffdlo.physics), differentiable; they run the eager path."""
         self._check_state("pos", pos)
+        if physics is not None:
+            physics.check(pos.shape[0], self.params.n_nodes)
         vel = torch.zeros_like(pos) if vel is None else vel
         self._check_state("vel", vel)
         if not isinstance(n_substeps, int) or n_substeps < 0:
             raise ValueError(f"n_substeps must be a non-negative integer, got {n_substeps!r}")
-        if n_substeps > 0 and self.uses_kernel():
+        if n_substeps > 0 and self.uses_kernel() and physics is None:
             batch = pos.shape[0]
             setup = kernel.Setup(self.params, batch, fixed_steps=n_substeps, divergence_radius=DIVERGENCE_RADIUS)
             zeros = torch.zeros(batch, dtype=torch.int64)
@@ -175,7 +185,7 @@ class Simulator:
                 self._check_finite(pos, f"after {n_substeps} free substeps")
             return pos, vel
         for _ in range(n_substeps):
-            pos, vel = self.substep(pos, vel)
+            pos, vel = self.substep(pos, vel, physics=physics)
         self._check_finite(pos, f"after {n_substeps} free substeps")
         return pos, vel
 
@@ -188,14 +198,17 @@ class Simulator:
         return self.move(pos, node, delta, vel=vel, return_info=return_info)
 
     def move(self, pos: torch.Tensor, node: torch.Tensor, delta: torch.Tensor, *, vel: torch.Tensor | None = None,
-             return_info: bool = False, record_every: int = 0) -> torch.Tensor | tuple[torch.Tensor, MoveInfo]:
+             return_info: bool = False, record_every: int = 0,
+             physics: Physics | None = None) -> torch.Tensor | tuple[torch.Tensor, MoveInfo]:
         """Grasp ``node`` (B,), drag it by ``delta`` (B, 2) [m], release, and settle. Returns the new positions.
 
         The rope starts at rest unless ``vel`` is given. Drags longer than ``max_disp`` are shortened along their
         direction. Each rope runs its own drag and its own settle (speed checked every ``settle_check_every``
         substeps after its release, capped at ``settle_max_substeps``) and is frozen once settled, so batch
         members never influence each other. Differentiable w.r.t. ``pos``, ``delta`` (and ``vel``).
-        With ``return_info`` returns ``(pos, MoveInfo)``; ``record_every > 0`` also records frames.
+        With ``return_info`` returns ``(pos, MoveInfo)``; ``record_every > 0`` also records frames. ``physics``:
+        per-rope k_s, k_b, k_d and mass (diffdlo.physics) in place of the params' numbers, differentiable; they run
+        the eager path.
         """
         p = self.params
         self._check_state("pos", pos)
@@ -203,12 +216,14 @@ class Simulator:
         vel = torch.zeros_like(pos) if vel is None else vel
         self._check_state("vel", vel)
         batch = pos.shape[0]
+        if physics is not None:
+            physics.check(batch, p.n_nodes)
 
         delta = control.clip_drag(delta, p.max_disp)
         distance = delta.norm(dim=-1)
         speed = control.drag_speed(distance, p)
         path_steps = control.path_substeps(distance, p)                       # (B,) on device
-        if self.uses_kernel(record_every):
+        if self.uses_kernel(record_every) and physics is None:
             return self._move_kernel(pos, vel, node, delta, speed, path_steps, return_info)
         grasp_steps = torch.where(path_steps > 0, path_steps + control.hold_substeps(p), path_steps)
         grasp_steps_cpu = grasp_steps.cpu()
@@ -231,8 +246,10 @@ class Simulator:
                 node_pos = (pos * grasped).sum(1)
                 error = ref_pos - node_pos
                 integral = integral + p.dt * error
-                external = (grasped & dragging) * control.pid_force(error, integral, ref_vel, k * p.dt, p).unsqueeze(1)
-            new_pos, new_vel = self.substep(pos, vel, external)
+                force = control.pid_force(error, integral, ref_vel, k * p.dt, p,
+                                          None if physics is None else physics.k_d)
+                external = (grasped & dragging) * force.unsqueeze(1)
+            new_pos, new_vel = self.substep(pos, vel, external, physics)
             if p.controller == "kinematic":
                 on_path = grasped & dragging
                 new_pos = torch.where(on_path, ref_pos.unsqueeze(1), new_pos)
