@@ -198,8 +198,8 @@ class Simulator:
         return self.move(pos, node, delta, vel=vel, return_info=return_info)
 
     def move(self, pos: torch.Tensor, node: torch.Tensor, delta: torch.Tensor, *, vel: torch.Tensor | None = None,
-             return_info: bool = False, record_every: int = 0,
-             physics: Physics | None = None) -> torch.Tensor | tuple[torch.Tensor, MoveInfo]:
+             return_info: bool = False, record_every: int = 0, physics: Physics | None = None,
+             differentiable_frames: bool = False) -> torch.Tensor | tuple[torch.Tensor, MoveInfo]:
         """Grasp ``node`` (B,), drag it by ``delta`` (B, 2) [m], release, and settle. Returns the new positions.
 
         The rope starts at rest unless ``vel`` is given. Drags longer than ``max_disp`` are shortened along their
@@ -208,7 +208,8 @@ class Simulator:
         members never influence each other. Differentiable w.r.t. ``pos``, ``delta`` (and ``vel``).
         With ``return_info`` returns ``(pos, MoveInfo)``; ``record_every > 0`` also records frames. ``physics``:
         per-rope k_s, k_b, k_d and mass (diffdlo.physics) in place of the params' numbers, differentiable; they run
-        the eager path.
+        the eager path. ``differentiable_frames``: the recorded frames keep their graph (a loss over a trajectory,
+        as the calibration fits), instead of detached copies for pictures.
         """
         p = self.params
         self._check_state("pos", pos)
@@ -235,7 +236,8 @@ class Simulator:
         done_dev = done.to(pos.device, copy=True)
         settled = torch.zeros(batch, dtype=torch.bool)
         finished_at = torch.zeros(batch, dtype=torch.int64)
-        frames = [pos.detach().clone()] if record_every > 0 else None
+        keep = (lambda x: x) if differentiable_frames else (lambda x: x.detach().clone())
+        frames = [keep(pos)] if record_every > 0 else None
         k = 0
         while not bool(done.all()):
             k += 1
@@ -258,7 +260,7 @@ class Simulator:
             pos = torch.where(frozen, pos, new_pos)
             vel = torch.where(frozen, vel, new_vel)
             if frames is not None and k % record_every == 0:
-                frames.append(pos.detach().clone())
+                frames.append(keep(pos))
 
             since_release = k - grasp_steps_cpu
             check = ~done & (since_release > 0) & (since_release % p.settle_check_every == 0)
@@ -277,7 +279,7 @@ class Simulator:
         if not return_info:
             return pos
         if frames is not None and frames[-1] is not pos:
-            frames.append(pos.detach().clone())
+            frames.append(keep(pos))
         info = MoveInfo(drag_substeps=grasp_steps_cpu, settle_substeps=finished_at - grasp_steps_cpu,
                         settled=settled, frames=torch.stack(frames) if frames is not None else None)
         return pos, info
