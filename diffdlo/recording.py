@@ -132,13 +132,13 @@ def _check_arrays(where: str, a: dict[str, np.ndarray], params: CableParams | No
     _check_kind(where, "times", times, "f", "floats")
     _check_shape(where, "times", times, (n_frames,), f"(T,) = ({n_frames},), T from positions")
     if not np.isfinite(times).all():
-        raise _fail(where, "times", f"must be finite, got {times[~np.isfinite(times)][0]} at frame "
+        raise _fail(where, "times", f"must be finite, got {float(times[~np.isfinite(times)][0])} at frame "
                                     f"{int(np.flatnonzero(~np.isfinite(times))[0])}")
     steps = np.diff(times)
     if (steps <= 0).any():
         i = int(np.flatnonzero(steps <= 0)[0])
-        raise _fail(where, "times", f"must be strictly increasing, got {times[i]!r} at frame {i} then "
-                                    f"{times[i + 1]!r} at frame {i + 1}")
+        raise _fail(where, "times", f"must be strictly increasing, got {float(times[i])!r} at frame {i} then "
+                                    f"{float(times[i + 1])!r} at frame {i + 1}")
     _check_kind(where, "visible", visible, "b", "booleans")
     _check_shape(where, "visible", visible, (n_frames, n_nodes), f"(T, N) = ({n_frames}, {n_nodes})")
     finite = np.isfinite(pos).all(-1)
