@@ -142,3 +142,162 @@ def identifiability(sim: Simulator, moves: Moves, theta: torch.Tensor, step: flo
                         "identifiable": std < identifiable_std}
     return {"eigenvalues": eigenvalues.tolist(), "eigenvectors": eigenvectors.T.tolist(), "sigma_m": math.sqrt(sigma2),
             "combinations": report, "simulator_calls": 1}
+
+
+# ====================================================================== from a recording
+def moves_from_recording(rec, dt: float, record_every: int | None = None) -> Moves:
+    """The recorded moves on the simulator's frame grid: each move starts from its start frame (the rope at rest,
+    every node tracked), and its frames at multiples of ``record_every`` substeps after the start are compared
+    (others are left out). ``record_every`` default: the recording's meta, else the shortest frame spacing."""
+    if record_every is None:
+        spacing = float((rec.times[1:] - rec.times[:-1]).min()) if rec.n_frames > 1 else dt
+        record_every = int(rec.meta.get("record_every") or max(1, round(spacing / dt)))
+    m, n = rec.n_moves, rec.n_nodes
+    grids = []
+    for i in range(m):
+        s, e = int(rec.move_start[i]), int(rec.move_end[i])
+        if not bool(rec.visible[s].all()):
+            missing = (~rec.visible[s]).nonzero().flatten().tolist()
+            raise ValueError(f"move {i} starts from frame {s}, where nodes {missing} were not tracked: a replay "
+                             "needs the whole start shape")
+        steps = torch.round((rec.times[s:e + 1] - rec.times[s]) / dt).to(torch.int64)
+        on_grid = (steps % record_every == 0).nonzero().flatten()
+        grids.append((s + on_grid, steps[on_grid] // record_every))
+    f = int(max(int(j.max()) for _, j in grids)) + 1
+    frames = torch.full((m, f, n, 2), math.nan, dtype=torch.float64)
+    visible = torch.zeros(m, f, n, dtype=torch.bool)
+    for i, (rows, j) in enumerate(grids):
+        frames[i, j] = rec.positions[rows]
+        visible[i, j] = rec.visible[rows]
+    return Moves(rec.positions[rec.move_start].clone(), rec.move_node.clone(), rec.move_delta.clone(), frames,
+                 visible, record_every)
+
+
+# ====================================================================== command line
+def synthetic_scale(seed: int) -> dict[str, float]:
+    """The hidden rope of ``--synthetic``: each parameter scaled by a factor log-uniform in [0.5, 2] (from seed)."""
+    g = torch.Generator().manual_seed(seed)
+    u = torch.rand(len(PHYSICAL), generator=g, dtype=torch.float64) * 2 - 1
+    return {k: float(torch.exp(v * math.log(2.0))) for k, v in zip(PHYSICAL, u)}
+
+
+def report(ident: dict[str, Any], true: dict[str, float] | None) -> dict[str, Any]:
+    """Per parameter and named combination: fitted, true (synthetic data), rel_error, std, identifiable."""
+    rows = {}
+    for name, c in COMBINATIONS.items():
+        row = dict(ident["combinations"][name])
+        if true is not None:
+            t = math.exp(sum(ci * math.log(true[k]) for ci, k in zip(c, PHYSICAL)))
+            row.update(true=t, rel_error=row["fitted"] / t - 1.0)
+        rows[name] = row
+    return rows
+
+
+def plot_trajectories(sim: Simulator, moves: Moves, theta: torch.Tensor, path, count: int = 4) -> None:
+    """Recorded (dots) against simulated (lines) paths of the grasped node and of node 0 in the first moves."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    with torch.no_grad():
+        simulated = simulated_frames(sim, moves, theta[None])[0]
+    count = min(count, moves.start.shape[0])
+    fig, axes = plt.subplots(1, count, figsize=(3.4 * count, 3.4), squeeze=False)
+    for i, ax in enumerate(axes[0]):
+        for node, colour in ((int(moves.node[i]), "tab:red"), (0, "tab:blue")):
+            rec = moves.frames[i, :, node][moves.visible[i, :, node]]
+            ax.plot(rec[:, 0], rec[:, 1], ".", color=colour, ms=4, label=f"recorded node {node}")
+            ax.plot(simulated[i, :, node, 0], simulated[i, :, node, 1], "-", color=colour, lw=1,
+                    label=f"simulated node {node}")
+        ax.set_title(f"move {i}", fontsize=9)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    import time
+    from pathlib import Path
+
+    import yaml
+
+    from .files import check_fresh_out, out_lock, write_json_atomic
+    from .params import ParamsError, load_params
+    from .record import make_recording
+    from .recording import RecordingError, load_recording
+
+    ap = argparse.ArgumentParser(prog="python -m diffdlo.calibrate", description=__doc__.split("\n\n")[0])
+    source = ap.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", help="a recording (.npz, see diffdlo/recording.py)")
+    source.add_argument("--synthetic", action="store_true",
+                        help="record a hidden rope (parameters x0.5-x2 of --params, log-uniform from --seed) first")
+    ap.add_argument("--out", required=True, help="output folder: results.json, trajectories.png")
+    ap.add_argument("--params", default="cable", help="the nominal model's params (default cable)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a cable parameter of --params, e.g. --set n_nodes=6 (small test ropes)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--moves", type=int, default=20, help="--synthetic: recorded moves (default 20)")
+    ap.add_argument("--noise", type=float, default=0.001, help="--synthetic: position noise std [m] (default 1 mm)")
+    ap.add_argument("--record-every", type=int, default=50, help="--synthetic: substeps between frames (default 50)")
+    ap.add_argument("--starts", type=int, default=2, help="initial guesses fitted at once (default 2)")
+    ap.add_argument("--iterations", type=int, default=100, help="Adam iterations (default 100)")
+    ap.add_argument("--lr", type=float, default=0.08, help="Adam learning rate on log parameters (default 0.08)")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    ap.add_argument("--overwrite", action="store_true", help="replace an earlier result in --out")
+    args = ap.parse_args(argv)
+    for flag, value, least in (("--moves", args.moves, 1), ("--starts", args.starts, 1),
+                               ("--record-every", args.record_every, 1),
+                               ("--iterations", args.iterations, 1), ("--threads", args.threads, 1)):
+        if value < least:
+            ap.error(f"{flag} must be at least {least}, got {value}")
+    if not (math.isfinite(args.noise) and args.noise >= 0) or not (math.isfinite(args.lr) and args.lr > 0):
+        ap.error(f"--noise must be >= 0 and --lr > 0, got {args.noise} and {args.lr}")
+    try:
+        pairs = [item.split("=", 1) for item in args.set]
+        if any(len(p) != 2 for p in pairs):
+            raise ValueError(f"--set expects KEY=VALUE, got {args.set}")
+        nominal = load_params(args.params, **{k.strip(): yaml.safe_load(v) for k, v in pairs})
+        check_fresh_out(args.out, args.overwrite, "an earlier calibration")
+        scale = synthetic_scale(args.seed) if args.synthetic else None
+        rec = (make_recording(nominal, args.moves, args.seed, noise=args.noise, record_every=args.record_every,
+                              scale=scale, params_name=args.params)
+               if args.synthetic else load_recording(args.data, nominal))
+        sim = Simulator(nominal, dtype=torch.float64, backend="torch")
+        moves = moves_from_recording(rec, nominal.dt)
+    except (ParamsError, RecordingError, FileExistsError, ValueError) as exc:
+        ap.error(str(exc))
+    torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    with out_lock(out):
+        t0 = time.perf_counter()
+        result = fit(sim, moves, starts=args.starts, iterations=args.iterations, lr=args.lr, seed=args.seed)
+        fit_s = time.perf_counter() - t0
+        ident = identifiability(sim, moves, result.theta)
+        true = rec.meta.get("true_params") if args.synthetic else None
+        results = {"data": "synthetic" if args.synthetic else str(args.data), "seed": args.seed,
+                   "moves": rec.n_moves, "frames_compared": int(moves.visible.sum()), "params": args.params,
+                   "nominal": {k: float(getattr(nominal, k)) for k in PHYSICAL}, "true": true,
+                   "fitted": result.values, "rms_m": result.rms, "start_rms_m": result.start_rms,
+                   "history_rms_m": result.history[::max(1, len(result.history) // 50)],
+                   "simulator_calls": result.simulator_calls + ident["simulator_calls"], "fit_s": fit_s,
+                   "eigenvalues": ident["eigenvalues"], "sigma_m": ident["sigma_m"],
+                   "parameters": report(ident, true)}
+        write_json_atomic(out / "results.json", results)
+        plot_trajectories(sim, moves, result.theta, out / "trajectories.png")
+    for name, row in results["parameters"].items():
+        extra = f", true {row['true']:.4g} ({100 * row['rel_error']:+.2f} %)" if "true" in row else ""
+        print(f"{name:9s} fitted {row['fitted']:.4g}{extra}, std {100 * row['std']:.2g} %, "
+              f"{'identifiable' if row['identifiable'] else 'NOT identifiable'}")
+    print(f"rms {1000 * result.rms:.3f} mm over {results['frames_compared']} node frames, {fit_s:.0f} s, "
+          f"{results['simulator_calls']} batched simulator calls -> {out / 'results.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -22,13 +22,12 @@ import numpy as np
 import torch
 
 from . import control
+from .physics import PHYSICAL     # what a calibration fits: the stiffnesses, the table's drag, the mass
 from .params import CableParams, ParamsError, load_params
 from .recording import Recording, save_recording
 from .simulator import Simulator
 
 PROG = "python -m diffdlo.record"
-# The parameters a calibration fits: the model's stiffnesses, the table's drag and the rope's mass.
-PHYSICAL = ("k_s", "k_b", "k_d", "mass")
 
 
 # ====================================================================== the true rope
