@@ -5,10 +5,16 @@ A planner has ``name``, ``sim_evals`` (rope-moves it has simulated), ``reset()``
 its first action in ``BatchedShapeControl`` and replans until success (shape_error < success_tol) or max_steps.
 Episode i starts from ``env.reset(seed=seed + i)``; with ``--target random`` or ``random_curve`` (a family in
 diffdlo.shapes.TARGET_FAMILIES) that reset also draws episode i's target, recorded under the episode in results.json.
+
+Model mismatch: ``--params`` are the model's, the planner plans with a Simulator of those; ``--real-params`` and
+``--real-scale`` give the "real" rope that the env moves and scores. The real rope must decode an action into the same
+move (n_nodes, length, action_scale, max_disp equal). ``build_run`` builds the pair (used by benchmarks/mismatch.py).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -21,10 +27,66 @@ from diffdlo import task
 from diffdlo.checks import check_interval
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic
-from diffdlo.params import ParamsError, load_params
+from diffdlo.params import CableParams, ParamsError, load_params
+from diffdlo.physics import PHYSICAL                    # k_s, k_b, k_d, mass: what a scale may change
 from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
+from diffdlo.simulator import Simulator
 
 DEFAULT_MAX_STEPS = 15
+SAME_MOVES = ("n_nodes", "length", "action_scale", "max_disp")   # model and real rope must agree on these
+
+
+# ---------------------------------------------------------------------- the model's and the real rope's params
+def parse_scales(items: list[str] | None, flag: str = "--real-scale") -> dict[str, float]:
+    """["k_s=1.3", "k_d=0.7"] -> {"k_s": 1.3, "k_d": 0.7}. Raises ValueError naming the bad item."""
+    factors: dict[str, float] = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or key not in PHYSICAL:
+            raise ValueError(f"bad {flag} {item!r}: give KEY=FACTOR with KEY one of {', '.join(PHYSICAL)}")
+        if key in factors:
+            raise ValueError(f"bad {flag} {item!r}: {key} is scaled twice")
+        try:
+            factor = float(text)
+        except ValueError:
+            factor = math.nan
+        if not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"bad {flag} {item!r}: the factor must be a positive finite number, got {text!r}")
+        factors[key] = factor
+    return factors
+
+
+def scaled(p: CableParams, factors: dict[str, float]) -> CableParams:
+    """``p`` with each physical value in ``factors`` multiplied by its factor (validated: raises ParamsError)."""
+    return dataclasses.replace(p, **{k: getattr(p, k) * f for k, f in factors.items()})
+
+
+def check_same_moves(model: CableParams, real: CableParams) -> None:
+    """The same action must mean the same move on the model and the real rope. Raises ParamsError naming the field."""
+    for field in SAME_MOVES:
+        if getattr(model, field) != getattr(real, field):
+            raise ParamsError(f"the real rope's {field} = {getattr(real, field)!r} differs from the model's "
+                              f"{getattr(model, field)!r}: the same actions would not mean the same moves")
+
+
+def physical_values(p: CableParams) -> dict[str, float]:
+    return {k: getattr(p, k) for k in PHYSICAL}
+
+
+def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *, max_steps: int,
+              success_tol: float | None, device: str, seed: int, options: dict[str, Any]):
+    """The env (moving and scoring the ``real`` rope) and the planner (planning on a Simulator of ``model``), with
+    the target set. Returns (env, planner, target), target None for a family (drawn per episode). Raises ParamsError
+    (ropes that disagree on SAME_MOVES), TargetError, or ValueError/RuntimeError (the env's options, the device)."""
+    check_same_moves(model, real)
+    env = BatchedShapeControl(1, target="horizontal", max_steps=max_steps, success_tol=success_tol, params=real,
+                              device=device)
+    target = task.resolve_target(target_spec, model, env.device, env.dtype)
+    env.set_target(target)
+    sim = env.sim if real == model else Simulator(model, device=env.device, dtype=env.dtype,
+                                                  backend=env.sim.backend)
+    planner = planner_cls(sim, seed=seed, **options)
+    return env, planner, (None if isinstance(target, str) else target)
 
 
 def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", progress: bool = True) -> dict[str, Any]:
@@ -77,7 +139,14 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
                         help=f"moves per episode (default {DEFAULT_MAX_STEPS})")
     parser.add_argument("--out", default=None, help=f"output folder (default runs/{name}-<target>)")
     parser.add_argument("--device", default="cpu", help="simulator device (default cpu)")
-    parser.add_argument("--params", default="cable", help="params name or YAML path (default cable)")
+    parser.add_argument("--params", default="cable",
+                        help="the model's params: a name or YAML path (default cable); the planner plans with them")
+    parser.add_argument("--real-params", default=None,
+                        help="the real rope's params (name or YAML path) that the env moves and scores (default "
+                             "--params); n_nodes, length, action_scale and max_disp must equal the model's")
+    parser.add_argument("--real-scale", action="append", default=None, metavar="KEY=FACTOR",
+                        help=f"multiply the real rope's {', '.join(PHYSICAL)} (those of --real-params, else of "
+                             f"--params) by FACTOR > 0; repeat for several keys, e.g. --real-scale k_d=2")
     parser.add_argument("--success-tol", type=float, default=None, help="success threshold [m] (default params: 0.01)")
     parser.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in --out")
     parser.add_argument("--no-gif", action="store_true", help="skip the GIFs")
@@ -89,6 +158,23 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
     return parser
 
 
+def check_planner_options(planner_cls, options: dict[str, Any], prefix: str = "--") -> None:
+    """Raise ValueError naming the first option (as the flag ``prefix`` + its name) outside its allowed range."""
+    def flag(key: str) -> str:
+        return prefix + key.replace("_", "-")
+    for key, (_, _, allowed, _) in planner_cls.OPTIONS.items():
+        check_interval(flag(key), options[key], allowed)
+    if "elites" in planner_cls.OPTIONS and options["elites"] > options["candidates"]:
+        raise ValueError(f"{flag('elites')} must be at most {flag('candidates')} ({options['candidates']}), "
+                         f"got {options['elites']}")
+
+
+def refuse(message: str) -> int:
+    """One line on stderr naming the bad value; the command's exit code 2."""
+    print(f"error: {' '.join(message.split())}", file=sys.stderr)
+    return 2
+
+
 def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = None) -> int:
     parser = make_parser(name, doc, planner_cls)
     args = parser.parse_args(argv)
@@ -97,10 +183,7 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
         check_interval("--max-steps", args.max_steps, "[1, inf)")
         if args.success_tol is not None:
             check_interval("--success-tol", args.success_tol, "(0, inf)")
-        for key, (_, _, allowed, _) in planner_cls.OPTIONS.items():
-            check_interval(f"--{key.replace('_', '-')}", getattr(args, key), allowed)
-        if "elites" in planner_cls.OPTIONS and args.elites > args.candidates:
-            raise ValueError(f"--elites must be at most --candidates ({args.candidates}), got {args.elites}")
+        check_planner_options(planner_cls, {k: getattr(args, k) for k in planner_cls.OPTIONS})
     except ValueError as exc:
         parser.error(str(exc))
     try:
@@ -108,19 +191,24 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     except (ParamsError, OSError, ValueError) as exc:
         parser.error(f"bad --params {args.params!r}: {exc}")
     try:
-        env = BatchedShapeControl(1, target="horizontal", max_steps=args.max_steps, success_tol=args.success_tol,
-                                  params=p, device=args.device)
+        factors = parse_scales(args.real_scale)
+    except ValueError as exc:
+        return refuse(str(exc))
+    try:
+        real = scaled(load_params(args.real_params) if args.real_params is not None else p, factors)
+        check_same_moves(p, real)
+    except (ParamsError, OSError, ValueError) as exc:
+        source = f"--real-params {args.real_params!r}" if args.real_params is not None else "--real-scale"
+        return refuse(f"bad {source}: {exc}")
+    options = {k: getattr(args, k) for k in planner_cls.OPTIONS}
+    try:
+        env, planner, target = build_run(planner_cls, p, real, args.target, max_steps=args.max_steps,
+                                         success_tol=args.success_tol, device=args.device, seed=args.seed,
+                                         options=options)
+    except TargetError as exc:
+        return refuse(f"bad --target {args.target!r}: {exc}")
     except (ValueError, RuntimeError) as exc:
         parser.error(str(exc))
-    try:
-        target = task.resolve_target(args.target, p, env.device, env.dtype)
-    except TargetError as exc:
-        print(f"error: bad --target {args.target!r}: {exc}", file=sys.stderr)
-        return 2
-    env.set_target(target)
-    if isinstance(target, str):
-        target = None                                       # a family: drawn by every env.reset(seed=SEED + i)
-    planner = planner_cls(env.sim, seed=args.seed, **{k: getattr(args, k) for k in planner_cls.OPTIONS})
     label = task.target_label(args.target)
     out = Path(args.out or f"runs/{name}-{label}")
     try:
@@ -133,16 +221,18 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
             t0 = time.perf_counter()
             episodes = [run_episode(env, planner, args.seed + i, progress=not args.quiet,
                                     desc=f"{name} {label} ep {i + 1}/{args.episodes}") for i in range(args.episodes)]
-            write_outputs(out, name, args, label, target, episodes, time.perf_counter() - t0)
+            mismatch = {} if real == p else {"model_params": physical_values(p), "real_params": physical_values(real)}
+            write_outputs(out, name, args, label, target, episodes, time.perf_counter() - t0, extra=mismatch)
     except OutBusyError as exc:
         parser.error(str(exc))
     return 0
 
 
 def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor | None, episodes: list[dict],
-                  wall: float):
-    """results.json, shapes.png and the GIFs. ``target`` None: the target was drawn per episode (a family), so each
-    episode's own target (its "target_points") is drawn and recorded under the episode as "target" ([[x, y], ...])."""
+                  wall: float, extra: dict | None = None):
+    """results.json (with ``extra``'s fields), shapes.png and the GIFs. ``target`` None: the target was drawn per
+    episode (a family), so each episode's own target (its "target_points") is drawn and recorded under the episode as
+    "target" ([[x, y], ...])."""
     from diffdlo import render
 
     n = len(episodes)
@@ -160,6 +250,7 @@ def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor |
         "sim_evals": sum(e["sim_evals"] for e in episodes),
         "plan_s_per_step": plan_s / max(steps, 1), "max_steps": args.max_steps,
         "config": {k: v for k, v in vars(args).items() if k not in ("out", "quiet")},
+        **(extra or {}),
     }
     write_json_atomic(out / "results.json", results)
     ropes, rope_targets, titles = [], [], []

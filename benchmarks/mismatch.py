@@ -1,0 +1,184 @@
+"""Planning under model mismatch: the planners plan on a model's cable parameters while the env moves a "real" rope.
+
+    python -m benchmarks.mismatch --target random --seeds 0 1 2 3 4 --episodes 20 --out runs/mismatch
+    python -m benchmarks.mismatch --seeds 0 --episodes 2 --model-scale k_d=1.2 --out runs/mismatch-try
+
+Conditions, for each method (CEM and the gradient planner, their own code in-process: planners.common.build_run
+and run_episode):
+
+- matched: model = real rope = the nominal params (--params);
+- mismatched: the model is nominal; the real rope has k_s, k_b, k_d and mass each scaled by a factor drawn per seed,
+  log-uniform in [1 - spread, 1 + spread] ([0.7, 1.3] by default), from a generator seeded with the seed (printed
+  and recorded);
+- calibrated (only with --model-params or --model-scale): the same real ropes as mismatched, planned on the given
+  model (--model-params, default the nominal, times --model-scale): a stand-in for calibrated parameters.
+
+Episode i of seed s starts from env.reset(seed=1000 s + i) (same starts and targets in every condition, up to the
+real rope's settling of the start shape). Writes <out>/results.json and <out>/mismatch.md (method, condition,
+success at the params' success_tol, mean moves of the successful episodes).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from diffdlo import task
+from diffdlo.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic, write_text_atomic
+from diffdlo.params import ParamsError, load_params
+from diffdlo.shapes import TargetError
+from planners.cem import CEMPlanner
+from planners.common import (DEFAULT_MAX_STEPS, PHYSICAL, build_run, check_planner_options, check_same_moves,
+                             parse_scales, physical_values, refuse, run_episode, scaled)
+from planners.gradient import GradientPlanner
+
+METHODS = {"cem": CEMPlanner, "gradient": GradientPlanner}
+# smaller than the planners' own defaults so that a short check is quick (the CEM budget the README shows matching
+# the gradient planner: 5/5 on diagonal in 6.2 moves)
+BUDGETS = {"cem": {"horizon": 1, "candidates": 70, "elites": 10, "iterations": 4},
+           "gradient": {"iters": 6, "restarts": 1}}
+EPISODE_SEED_STRIDE = 1000
+
+
+def real_factors(seed: int, spread: float) -> dict[str, float]:
+    """Per-seed factors for PHYSICAL, log-uniform in [1 - spread, 1 + spread]."""
+    lo, hi = math.log(1 - spread), math.log(1 + spread)
+    u = torch.rand(len(PHYSICAL), generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return {k: math.exp(lo + float(x) * (hi - lo)) for k, x in zip(PHYSICAL, u)}
+
+
+def make_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.mismatch", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--target", default="random", help="a target name, family or file, as the planners take it "
+                                                      "(default random)")
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3, 4])
+    ap.add_argument("--episodes", type=int, default=20, help="episodes per seed (default 20)")
+    ap.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS)
+    ap.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
+    ap.add_argument("--params", default="cable", help="the nominal params: name or YAML path (default cable)")
+    ap.add_argument("--spread", type=float, default=0.3, help="the real rope's factors lie in [1 - spread, "
+                                                              "1 + spread] (default 0.3)")
+    ap.add_argument("--model-params", default=None, help="the calibrated condition's model (name or YAML path)")
+    ap.add_argument("--model-scale", action="append", default=None, metavar="KEY=FACTOR",
+                    help=f"multiply the calibrated model's {', '.join(PHYSICAL)} by FACTOR (repeatable)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", default="runs/mismatch")
+    ap.add_argument("--overwrite", action="store_true", help="replace an earlier benchmark in --out")
+    ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    for method, cls in METHODS.items():
+        group = ap.add_argument_group(f"{method} budget")
+        for key, (kind, default, allowed, text) in cls.OPTIONS.items():
+            value = BUDGETS[method].get(key, default)
+            group.add_argument(f"--{method}-{key.replace('_', '-')}", dest=f"{method}_{key}", type=kind,
+                               default=value, help=f"{text}: in {allowed} (default {value})")
+    return ap
+
+
+def summarize(episodes: list[dict]) -> dict:
+    wins = [e for e in episodes if e["success"]]
+    return {"successes": len(wins), "episodes": len(episodes), "success_rate": len(wins) / len(episodes),
+            "moves_mean": sum(e["steps"] for e in wins) / len(wins) if wins else None}
+
+
+def markdown(rows: list[dict], success_tol: float) -> str:
+    lines = [f"| method | condition | success (< {success_tol * 100:g} cm) | moves to success (mean) |",
+             "|---|---|---|---|"]
+    for r in rows:
+        moves = "-" if r["moves_mean"] is None else f"{r['moves_mean']:.1f}"
+        lines.append(f"| {r['method']} | {r['condition']} | {r['successes']}/{r['episodes']} "
+                     f"({r['success_rate'] * 100:.0f}%) | {moves} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = make_parser()
+    args = ap.parse_args(argv)
+    try:
+        if not 1 <= args.episodes <= EPISODE_SEED_STRIDE:
+            raise ValueError(f"--episodes must be in [1, {EPISODE_SEED_STRIDE}], got {args.episodes}")
+        if args.max_steps < 1:
+            raise ValueError(f"--max-steps must be at least 1, got {args.max_steps}")
+        if not 0 < args.spread < 1:
+            raise ValueError(f"--spread must be in (0, 1), got {args.spread}")
+        budgets = {m: {k: getattr(args, f"{m}_{k}") for k in METHODS[m].OPTIONS} for m in args.methods}
+        for m in args.methods:
+            check_planner_options(METHODS[m], budgets[m], prefix=f"--{m}-")
+        model_factors = parse_scales(args.model_scale, "--model-scale")
+    except ValueError as exc:
+        return refuse(str(exc))
+    try:
+        nominal = load_params(args.params)
+        calibrated = None
+        if args.model_params is not None or model_factors:
+            calibrated = scaled(load_params(args.model_params or args.params), model_factors)
+            check_same_moves(nominal, calibrated)
+        reals = {s: scaled(nominal, real_factors(s, args.spread)) for s in args.seeds}
+    except (ParamsError, OSError, ValueError) as exc:
+        return refuse(f"bad params: {exc}")
+    try:
+        task.resolve_target(args.target, nominal)
+    except TargetError as exc:
+        return refuse(f"bad --target {args.target!r}: {exc}")
+    out = Path(args.out)
+    try:
+        check_fresh_out(out, args.overwrite, "an earlier benchmark")
+    except FileExistsError as exc:
+        return refuse(str(exc))
+
+    for s in args.seeds:
+        print(f"seed {s}: real rope = nominal x " + ", ".join(f"{k} {f:.3f}" for k, f in
+                                                              real_factors(s, args.spread).items()), flush=True)
+    conditions = {"matched": lambda s: (nominal, nominal), "mismatched": lambda s: (nominal, reals[s])}
+    if calibrated is not None:
+        conditions["calibrated"] = lambda s: (calibrated, reals[s])
+
+    rows, t0 = [], time.perf_counter()
+    total = len(args.methods) * len(conditions) * len(args.seeds) * args.episodes
+    bar = tqdm(total=total, desc="mismatch", disable=args.quiet, dynamic_ncols=True, file=sys.stderr)
+    try:
+        with out_lock(out):
+            for method in args.methods:
+                for condition, pair in conditions.items():
+                    per_seed = []
+                    for s in args.seeds:
+                        model, real = pair(s)
+                        env, planner, _ = build_run(METHODS[method], model, real, args.target,
+                                                    max_steps=args.max_steps, success_tol=None, device=args.device,
+                                                    seed=s, options=budgets[method])
+                        episodes = []
+                        for i in range(args.episodes):
+                            bar.set_postfix_str(f"{method} {condition} seed {s}")
+                            e = run_episode(env, planner, EPISODE_SEED_STRIDE * s + i, progress=False)
+                            episodes.append({k: e[k] for k in ("seed", "target_name", "success", "steps",
+                                                               "start_error", "final_error", "sim_evals")})
+                            bar.update(1)
+                        per_seed.append({"seed": s, "model_params": physical_values(model),
+                                         "real_params": physical_values(real), **summarize(episodes),
+                                         "episodes": episodes})
+                    everything = [e for r in per_seed for e in r["episodes"]]
+                    rows.append({"method": method, "condition": condition, **summarize(everything),
+                                 "per_seed": per_seed})
+            bar.close()
+            table = markdown(rows, nominal.success_tol)
+            write_json_atomic(out / "results.json", {
+                "target": args.target, "seeds": args.seeds, "episodes_per_seed": args.episodes,
+                "max_steps": args.max_steps, "success_tol": nominal.success_tol, "spread": args.spread,
+                "nominal_params": physical_values(nominal),
+                "real_factors": {str(s): real_factors(s, args.spread) for s in args.seeds},
+                "calibrated_params": None if calibrated is None else physical_values(calibrated),
+                "budgets": budgets, "wall_s": time.perf_counter() - t0, "rows": rows})
+            write_text_atomic(out / "mismatch.md", table)
+    except OutBusyError as exc:
+        return refuse(str(exc))
+    print(table + f"-> {out}/results.json, {out}/mismatch.md")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
