@@ -202,7 +202,7 @@ class EpisodeTracker:
 
     def update(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(new (B,) bool, moved (B,) bool); a new rope counts as moved."""
-        steps = self.core.get_state().steps.cpu().long()
+        steps = self.core.get_state(generators=False).steps.cpu().long()
         new = steps == 0
         moved = (steps != self.last_steps) | new
         self.last_steps = steps.clone()

@@ -83,7 +83,7 @@ class EpisodeRecorder:
         return getattr(self._core, name)
 
     def _record(self, ropes: list[int]) -> None:
-        s = self._core.get_state()
+        s = self._core.get_state(generators=False)
         for i in ropes:
             self.frames[i].append(s.pos[i].detach().cpu().clone())
             self.grasped[i].append(int(s.info["node"][i]))

@@ -42,7 +42,7 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
         final_err = torch.zeros(b)
         success = torch.zeros(b, dtype=torch.bool)
         steps = torch.zeros(b, dtype=torch.int64)
-        final_pos = env.core.get_state().pos
+        final_pos = env.core.get_state(generators=False).pos
         while bool(active.any()):
             actions = policy(obs, deterministic)
             obs, reward, term, trunc, info = env.core.step(actions.to(env.core.device), mask=active)
@@ -54,9 +54,9 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
             success[done] = info["is_success"].cpu()[done]
             if bool(done.any()):
                 d = done.to(final_pos.device)
-                final_pos[d] = env.core.get_state().pos[d]
+                final_pos[d] = env.core.get_state(generators=False).pos[d]
             active &= ~done
-        state = env.core.get_state()
+        state = env.core.get_state(generators=False)
         for i in range(min(b, n_episodes - len(episodes))):
             episodes.append({"success": bool(success[i]), "steps": int(steps[i]),
                              "final_error": float(final_err[i]), "return": float(ret[i]),

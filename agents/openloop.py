@@ -51,21 +51,21 @@ def open_loop_eval(model: RSSM | EnsembleDynamics, cfg, n_episodes: int | None =
     obs = env.reset(seed=cfg.openloop_seed if seed is None else seed)
     g = torch.Generator().manual_seed(cfg.openloop_seed if seed is None else seed)
     dev = cfg.run.device
-    obs_seq, pos_seq, acts = [obs], [env.core.get_state().pos], []
+    obs_seq, pos_seq, acts = [obs], [env.core.get_state(generators=False).pos], []
     alive = torch.ones(n, dtype=torch.bool)
     for _ in range(context + k_max):
         a = torch.rand(n, env.core.action_dim, generator=g).to(dev)
         obs, _, term, trunc, _ = env.core.step(a, mask=alive)
         alive &= ~(term | trunc).cpu()
         obs_seq.append(obs)
-        pos_seq.append(env.core.get_state().pos)
+        pos_seq.append(env.core.get_state(generators=False).pos)
         acts.append(a)
     true = torch.stack(pos_seq[context + 1:], 1).float()                              # (n, K, N, 2)
     if isinstance(model, EnsembleDynamics):
         out = k_step_errors(model, pos_seq[context].float(), torch.stack(acts[context:], 1), true, horizons,
                             alive.to(true.device))
         out.update({"n": int(alive.sum()), "context": context, "true": true.cpu(), "alive": alive,
-                    "target": env.core.get_state().target.float().cpu()})
+                    "target": env.core.get_state(generators=False).target.float().cpu()})
         out["pred"] = out["pred"].cpu()
         return out
     state = None
@@ -73,7 +73,7 @@ def open_loop_eval(model: RSSM | EnsembleDynamics, cfg, n_episodes: int | None =
         state, _ = model.obs_step(state, None if t == 0 else acts[t - 1], model.embed(obs_seq[t]), sample=False)
     traj = model.imagine(state, torch.stack(acts[context:], 1), sample=False)
     feat = torch.stack([RSSM.feature(s) for s in traj], 1)                            # (n, K, F)
-    target = env.core.get_state().target.float()
+    target = env.core.get_state(generators=False).target.float()
     out: dict[str, Any] = {"n": int(alive.sum()), "context": context}
     a_ = alive.to(true.device)
     if cfg.task.obs in ("points", "distance"):

@@ -222,7 +222,9 @@ class LatentPlanner:
             post = {k: torch.where(keep[:, None], self.state[k], post[k]) for k in post}
         self.state = post
         action = self.prev_action.clone()
-        target = self.core.get_state().target.to(dev).float() if self.cfg.plan_objective == "shape" else None
+        target = None
+        if self.cfg.plan_objective == "shape":
+            target = self.core.get_state(generators=False).target.to(dev).float()
         rows = moved.nonzero().flatten().tolist()
         if rows:                                   # every moving rope's CEM in lockstep, one model call per iteration
             idx = torch.tensor(rows, device=dev)

@@ -38,7 +38,8 @@ def collect(samples: int, seed: int, image_size: int, mark_end: bool, target: st
     while sum(len(e) for e in errors) < samples:
         for k in obs:
             images[k].append(obs[k])
-        pos, tgt = env.get_state().pos.detach(), env.get_state().target.detach()
+        state = env.get_state(generators=False)
+        pos, tgt = state.pos.detach(), state.target.detach()
         errors.append(relative_features(pos - tgt, 1.0).view(envs, n, 2))   # the points learners' diff, in m
         obs, _, term, trunc, _ = env.step(torch.rand(envs, 3, generator=g))
         ended = term | trunc

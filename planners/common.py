@@ -93,7 +93,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     """One episode of receding-horizon control. Returns the episode record plus its frames (T+1, N, 2)."""
     env.reset(seed=seed)
     planner.reset()
-    state = env.get_state()
+    state = env.get_state(generators=False)
     target, target_name = state.target[0], state.target_names[0]
     frames = [state.pos[0]]
     errors = [float(state.info["shape_error"][0])]
@@ -108,7 +108,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         plan_s += time.perf_counter() - t0
         _, _, term, trunc, info = env.step(action.detach().reshape(1, -1).to(torch.float64))
         steps += 1
-        frames.append(env.get_state().pos[0])
+        frames.append(env.get_state(generators=False).pos[0])
         errors.append(float(info["shape_error"][0]))
         success = bool(info["is_success"][0])
         bar.update(1)

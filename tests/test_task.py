@@ -87,6 +87,10 @@ def test_get_state_is_a_copy_and_set_state_restores_the_episode_exactly(small):
     again = [env.step(a, autoreset="same_step") for _ in range(3)]
     for (o1, r1, *_), (o2, r2, *_) in zip(first, again):
         assert torch.equal(r1, r2) and torch.equal(o1["node_poses"], o2["node_poses"])
+    reader = env.get_state(generators=False)                           # cheap: no generators to copy
+    assert reader.rngs is None and torch.equal(reader.pos, env.get_state().pos)
+    with pytest.raises(ValueError, match="generators=False"):
+        env.set_state(reader)
     fresh = BatchedShapeControl(3, target="random", params=small)
     fresh.reset(seed=5)
     assert saved.target_names == fresh.get_state().target_names

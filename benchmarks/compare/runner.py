@@ -56,7 +56,7 @@ def random_target_names(seed0: int, n: int) -> list[str]:
 
     env = BatchedShapeControl(n, target="random")
     env.reset(seed=seed0)                  # rope i gets seed seed0 + i: the draw of a one-rope env reset with it
-    return list(env.get_state().target_names)
+    return list(env.get_state(generators=False).target_names)
 
 
 def merge_subruns(parts: list[dict[str, Any]], cell: dict[str, Any]) -> dict[str, Any]:

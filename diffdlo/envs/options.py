@@ -118,5 +118,5 @@ def checked_options(num_envs: Any, obs_type: Any, action_type: Any, reward: Any,
     if not isinstance(mark_end, (bool, np.bool_)):
         raise ValueError(f"mark_end must be True or False, got {mark_end!r}")
     rules = task.EpisodeRules(reward, float(success_tol), int(max_steps), float(success_bonus),
-                                   float(step_penalty), on_exit, float(exit_penalty), tuple(p.workspace))
+                              float(step_penalty), on_exit, float(exit_penalty), tuple(p.workspace))
     return p, rules

@@ -20,7 +20,8 @@ class EnvState:
     pos, target (B, N, 2) [m]; steps (B,) moves since the reset; info: the per-rope figures of the last reset or
     move (task.task_metrics plus node (-1 after a reset) and substeps); target_names: the name of each rope's
     target (a named target, "random_curve" or "custom"); target_spec: what the next reset draws targets from (a
-    family name or a fixed (N, 2) target); rngs: each rope's generator (None until first seeded or reset);
+    family name or a fixed (N, 2) target); rngs: each rope's generator (None until first seeded or reset; the
+    whole list None in a copy read without them);
     needs_reset (B,): ropes whose episode ended, reset by their next step under autoreset "next_step".
     """
     pos: torch.Tensor
@@ -29,14 +30,15 @@ class EnvState:
     info: dict[str, torch.Tensor]
     target_names: list[str]
     target_spec: Any
-    rngs: list[np.random.Generator | None]
+    rngs: list[np.random.Generator | None] | None
     needs_reset: torch.Tensor
 
-    def clone(self) -> "EnvState":
+    def clone(self, generators: bool = True) -> "EnvState":
+        """A copy; ``generators=False`` leaves the generators out (rngs None): the cheap copy a reader needs."""
         return EnvState(self.pos.clone(), self.target.clone(), self.steps.clone(),
                         {k: v.clone() for k, v in self.info.items()}, list(self.target_names),
                         self.target_spec.clone() if torch.is_tensor(self.target_spec) else self.target_spec,
-                        copy.deepcopy(self.rngs), self.needs_reset.clone())
+                        copy.deepcopy(self.rngs) if generators else None, self.needs_reset.clone())
 
     def to_dict(self) -> dict[str, Any]:
         """Plain CPU tensors, lists and generator states (for checkpoints)."""
