@@ -96,6 +96,35 @@ def markdown(rows: list[dict], success_tol: float) -> str:
     return "\n".join(lines) + "\n"
 
 
+def plot_rows(rows: list[dict], path: Path) -> None:
+    """Success per method (groups) and condition (bars), with the mean moves of the successes on each bar."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    conditions = list(dict.fromkeys(r["condition"] for r in rows))
+    fig, ax = plt.subplots(figsize=(2.4 + 1.6 * len(methods) * len(conditions) / 2, 3.6))
+    width = 0.8 / len(conditions)
+    for j, condition in enumerate(conditions):
+        for i, method in enumerate(methods):
+            row = next(r for r in rows if r["method"] == method and r["condition"] == condition)
+            bar = ax.bar(i + j * width, 100 * row["success_rate"], width, color=f"C{j}",
+                         label=condition if i == 0 else None)
+            moves = row["moves_mean"]
+            if moves is not None:
+                ax.bar_label(bar, labels=[f"{moves:.1f} mv"], fontsize=7)
+    ax.set_xticks([i + width * (len(conditions) - 1) / 2 for i in range(len(methods))], methods)
+    ax.set_ylabel("success at 1 cm [%]")
+    ax.set_ylim(0, 110)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = make_parser()
     args = ap.parse_args(argv)
@@ -174,9 +203,10 @@ def main(argv: list[str] | None = None) -> int:
                 "calibrated_params": None if calibrated is None else physical_values(calibrated),
                 "budgets": budgets, "wall_s": time.perf_counter() - t0, "rows": rows})
             write_text_atomic(out / "mismatch.md", table)
+            plot_rows(rows, out / "mismatch.png")
     except OutBusyError as exc:
         return refuse(str(exc))
-    print(table + f"-> {out}/results.json, {out}/mismatch.md")
+    print(table + f"-> {out}/results.json, {out}/mismatch.md, {out}/mismatch.png")
     return 0
 
 

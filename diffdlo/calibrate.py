@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 from typing import Any
 
 import torch
@@ -89,15 +90,21 @@ class Fit:
     simulator_calls: int           # batched forward + backward passes
 
 
+def _bar(iterations: int, method: str, progress: bool):
+    from tqdm import tqdm
+    return tqdm(range(iterations), desc=f"calibrate ({method})", disable=not progress, dynamic_ncols=True,
+                file=sys.stderr)
+
+
 def fit(sim: Simulator, moves: Moves, starts: int = 4, iterations: int = 150, lr: float = 0.08,
-        bound: float = math.log(4.0), seed: int = 0) -> Fit:
+        bound: float = math.log(4.0), seed: int = 0, progress: bool = False) -> Fit:
     """Adam on the mean squared position error from ``starts`` initial guesses at once (the first: the nominal
     parameters; the others drawn log-uniformly within the bound from ``seed``). ``fit_gauss_newton`` converges in
     far fewer simulator calls on this small least-squares problem; Adam is kept for comparison."""
     theta = initial_thetas(starts, bound, seed).requires_grad_(True)
     opt = torch.optim.Adam([theta], lr=lr)
     history: list[torch.Tensor] = []
-    for _ in range(iterations):
+    for _ in (bar := _bar(iterations, "adam", progress)):
         opt.zero_grad()
         per_start = residuals(sim, moves, theta).pow(2).mean(1)                    # (S,)
         per_start.sum().backward()
@@ -105,6 +112,7 @@ def fit(sim: Simulator, moves: Moves, starts: int = 4, iterations: int = 150, lr
         with torch.no_grad():
             theta.clamp_(-bound, bound)
         history.append(per_start.detach())
+        bar.set_postfix(rms_mm=f"{1000 * float(per_start.detach().min().sqrt()):.3f}")
     with torch.no_grad():
         final = residuals(sim, moves, theta).pow(2).mean(1)
     best = int(final.argmin())
@@ -136,7 +144,8 @@ def initial_thetas(starts: int, bound: float, seed: int) -> torch.Tensor:
 
 
 def fit_gauss_newton(sim: Simulator, moves: Moves, starts: int = 1, iterations: int = 12,
-                     bound: float = math.log(4.0), seed: int = 0, damping: float = 1e-3) -> Fit:
+                     bound: float = math.log(4.0), seed: int = 0, damping: float = 1e-3,
+                     progress: bool = False) -> Fit:
     """Levenberg-Marquardt on the position residuals: each iteration one batched call (the Jacobian by central
     differences, ``residuals_and_jacobian``), a damped Gauss-Newton step per start, kept if it lowers the error
     (the damping then shrinks) and refused otherwise (it grows). Marquardt's diagonal scaling handles the exact
@@ -146,7 +155,7 @@ def fit_gauss_newton(sim: Simulator, moves: Moves, starts: int = 1, iterations: 
     cost = r.pow(2).mean(1)
     lam = torch.full((starts,), damping, dtype=torch.float64)
     history = [cost]
-    for _ in range(iterations):
+    for _ in (bar := _bar(iterations, "gauss-newton", progress)):
         h = jac.transpose(1, 2) @ jac                                                 # (S, 4, 4)
         g = (jac.transpose(1, 2) @ r.unsqueeze(-1)).squeeze(-1)                      # (S, 4)
         scaled = torch.diag_embed(h.diagonal(dim1=-2, dim2=-1)) + 1e-12 * torch.eye(4, dtype=torch.float64)
@@ -161,6 +170,7 @@ def fit_gauss_newton(sim: Simulator, moves: Moves, starts: int = 1, iterations: 
         cost = torch.where(better, cost_t, cost)
         lam = torch.where(better, lam / 3, lam * 5)
         history.append(cost)
+        bar.set_postfix(rms_mm=f"{1000 * float(cost.min().sqrt()):.3f}")
     best = int(cost.argmin())
     values = torch.exp(theta[best]) * nominal_values(sim)
     return Fit(theta[best].clone(), dict(zip(PHYSICAL, values.tolist())), float(cost[best].sqrt()),
@@ -302,6 +312,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lr", type=float, default=0.08, help="adam: learning rate on log parameters (default 0.08)")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     ap.add_argument("--overwrite", action="store_true", help="replace an earlier result in --out")
+    ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = ap.parse_args(argv)
     if args.iterations is None:
         args.iterations = 12 if args.method == "gauss-newton" else 150
@@ -330,9 +341,11 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     with out_lock(out):
         t0 = time.perf_counter()
-        result = (fit_gauss_newton(sim, moves, starts=args.starts, iterations=args.iterations, seed=args.seed)
+        result = (fit_gauss_newton(sim, moves, starts=args.starts, iterations=args.iterations, seed=args.seed,
+                                   progress=not args.no_progress)
                   if args.method == "gauss-newton" else
-                  fit(sim, moves, starts=args.starts, iterations=args.iterations, lr=args.lr, seed=args.seed))
+                  fit(sim, moves, starts=args.starts, iterations=args.iterations, lr=args.lr, seed=args.seed,
+                      progress=not args.no_progress))
         fit_s = time.perf_counter() - t0
         ident = identifiability(sim, moves, result.theta)
         true = rec.meta.get("true_params") if args.synthetic else None

@@ -98,6 +98,7 @@ def test_mismatch_benchmark_tiny_run_writes_its_table(tmp_path, capsys):
     assert all(f"{k} {factors[k]:.3f}" in printed for k in PHYSICAL)       # the seed's factors are shown
     assert all(0.7 <= f <= 1.3 for f in factors.values())
     table = (out / "mismatch.md").read_text()
+    assert (out / "mismatch.png").stat().st_size > 0                        # the picture beside the table
     for method in ("cem", "gradient"):
         for condition in ("matched", "mismatched", "calibrated"):
             assert f"| {method} | {condition} |" in table
