@@ -29,7 +29,6 @@ import numpy as np
 import torch
 
 from agents import config as config_lib
-from agents import hybrid
 from agents.checkpoints import CHECKPOINT, load_checkpoint
 from agents.envs import TrainEnv, env_kwargs, make_env
 from diffdlo.envs import BatchedShapeControl
@@ -103,17 +102,14 @@ def sac_actor(cfg, ck: dict[str, Any], obs: Any, action_dim: int, path: Path) ->
     """SAC's actor as ``agents.sac.train`` builds it (HybridActor or Actor by cfg.policy), and its policy."""
     from agents import sac
     p = cfg.task.cable_params()
-    is_hybrid = cfg.policy == "hybrid"
-    actor = (sac.HybridActor(obs, cfg, p.length, p.n_nodes) if is_hybrid
+    actor = (sac.HybridActor(obs, cfg, p.length, p.n_nodes) if cfg.policy == "hybrid"
              else sac.Actor(obs, action_dim, cfg, p.length)).to(cfg.run.device)
     load_weights(actor, ck["actor"], path, "actor")
     actor.eval()
 
     @torch.no_grad()
     def policy(o: Any, deterministic: bool = True) -> torch.Tensor:
-        if is_hybrid:
-            return hybrid.to_env_action(*hybrid.split(actor.act(o, deterministic)), p.n_nodes)
-        return actor(o, deterministic)[0]
+        return actor.env_action(o, deterministic)
     return policy
 
 

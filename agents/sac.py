@@ -107,6 +107,10 @@ class Actor(nn.Module):
         log_prob = squashed_log_prob(u, mean, log_std) + mean.shape[-1] * math.log(2.0)     # a = (y + 1) / 2
         return (torch.tanh(u) + 1) / 2, log_prob
 
+    def env_action(self, obs: Any, deterministic: bool = False) -> torch.Tensor:
+        """The env's action (B, A) in [0, 1]^A."""
+        return self(obs, deterministic)[0]
+
 
 class Critic(nn.Module):
     """Gaussian policy's twin Q networks Q(s, a) on one encoder (SB3 shares the critic's features extractor)."""
@@ -151,6 +155,10 @@ class HybridActor(nn.Module):
         log_pk, drags, _ = self(obs, deterministic)
         node = log_pk.argmax(-1) if deterministic else torch.distributions.Categorical(logits=log_pk).sample()
         return hybrid.join(node, drags[torch.arange(len(node), device=node.device), node])
+
+    def env_action(self, obs: Any, deterministic: bool = False) -> torch.Tensor:
+        """The env's node action (B, 3) of an ``act`` choice."""
+        return hybrid.to_env_action(*hybrid.split(self.act(obs, deterministic)), self.n)
 
 
 class EnsembleLinear(nn.Module):
@@ -259,10 +267,7 @@ def train(cfg: SACConfig, out: Path | str, resume: bool = False, progress: bool 
     critic_norms = [m.feat.norm for m in (critic, critic_target) if m.feat.norm is not None]
 
     def policy(o: Any, deterministic: bool) -> torch.Tensor:
-        if is_hybrid:
-            node, drag = hybrid.split(actor.act(o, deterministic))
-            return hybrid.to_env_action(node, drag, n_nodes)
-        return actor(o, deterministic)[0]
+        return actor.env_action(o, deterministic)
 
     def augmented(b: dict[str, Any]) -> dict[str, Any]:
         """DrQ: every sampled picture shifted at random, obs and next_obs independently (Kostrikov et al. 2021)."""
