@@ -34,7 +34,7 @@ from diffdlo.params import ParamsError, load_params
 from diffdlo.shapes import TargetError
 from planners.cem import CEMPlanner
 from planners.common import (DEFAULT_MAX_STEPS, PHYSICAL, build_run, check_planner_options, check_same_moves,
-                             parse_scales, physical_values, refuse, run_episode, scaled)
+                             parse_scales, physical_values, refuse, run_episode, scaled_params)
 from planners.gradient import GradientPlanner
 
 METHODS = {"cem": CEMPlanner, "gradient": GradientPlanner}
@@ -145,9 +145,9 @@ def main(argv: list[str] | None = None) -> int:
         nominal = load_params(args.params)
         calibrated = None
         if args.model_params is not None or model_factors:
-            calibrated = scaled(load_params(args.model_params or args.params), model_factors)
+            calibrated = scaled_params(load_params(args.model_params or args.params), model_factors, "--model-scale")
             check_same_moves(nominal, calibrated)
-        reals = {s: scaled(nominal, real_factors(s, args.spread)) for s in args.seeds}
+        reals = {s: scaled_params(nominal, real_factors(s, args.spread)) for s in args.seeds}
     except (ParamsError, OSError, ValueError) as exc:
         return refuse(f"bad params: {exc}")
     try:

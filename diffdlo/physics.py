@@ -57,6 +57,23 @@ class Physics:
         return self.mass / n_nodes
 
 
+def physical_values(params: CableParams) -> dict[str, float]:
+    """The params' k_s, k_b, k_d and mass."""
+    return {name: getattr(params, name) for name in PHYSICAL}
+
+
+def scaled_params(params: CableParams, factors: dict[str, float], flag: str = "--scale") -> CableParams:
+    """``params`` with each named physical parameter multiplied by its factor: a hidden "real" rope. ValueError for
+    another name or a factor that is not a positive finite number (``flag`` names the option in the message);
+    ParamsError if the result is unstable."""
+    for name, factor in factors.items():
+        if name not in PHYSICAL:
+            raise ValueError(f"{flag} {name}={factor}: can scale only {', '.join(PHYSICAL)}, not {name!r}")
+        if isinstance(factor, bool) or not (isinstance(factor, (int, float)) and math.isfinite(factor) and factor > 0):
+            raise ValueError(f"{flag} {name}={factor}: the factor must be a positive finite number")
+    return dataclasses.replace(params, **{name: getattr(params, name) * factor for name, factor in factors.items()})
+
+
 def per_rope(value: Any, ndim: int) -> Any:
     """A float as it is; a (B,) tensor shaped (B, 1, ...) to broadcast against (B, ...) tensors of ``ndim`` dims."""
     if torch.is_tensor(value) and value.ndim == 1:

@@ -22,28 +22,12 @@ import numpy as np
 import torch
 
 from . import control
-from .physics import PHYSICAL     # what a calibration fits: the stiffnesses, the table's drag, the mass
+from .physics import PHYSICAL, physical_values as true_params, scaled_params   # the hidden rope
 from .params import CableParams, ParamsError, load_params
 from .recording import Recording, save_recording
 from .simulator import Simulator
 
 PROG = "python -m diffdlo.record"
-
-
-# ====================================================================== the true rope
-def scaled_params(params: CableParams, scale: dict[str, float]) -> CableParams:
-    """``params`` with each named physical parameter multiplied by its factor (ValueError for another name or a
-    factor that is not a positive finite number; ParamsError if the result is unstable)."""
-    for name, factor in scale.items():
-        if name not in PHYSICAL:
-            raise ValueError(f"--scale {name}={factor}: can scale only {', '.join(PHYSICAL)}, not {name!r}")
-        if not (isinstance(factor, (int, float)) and math.isfinite(factor) and factor > 0):
-            raise ValueError(f"--scale {name}={factor}: the factor must be a positive finite number")
-    return dataclasses.replace(params, **{name: getattr(params, name) * factor for name, factor in scale.items()})
-
-
-def true_params(params: CableParams) -> dict[str, float]:
-    return {name: getattr(params, name) for name in PHYSICAL}
 
 
 # ====================================================================== simulating

@@ -13,7 +13,6 @@ move (n_nodes, length, action_scale, max_disp equal). ``build_run`` builds the p
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import sys
 import time
@@ -28,7 +27,7 @@ from diffdlo.checks import check_interval
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic
 from diffdlo.params import CableParams, ParamsError, load_params
-from diffdlo.physics import PHYSICAL                    # k_s, k_b, k_d, mass: what a scale may change
+from diffdlo.physics import PHYSICAL, physical_values, scaled_params   # what a scale may change
 from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
 from diffdlo.simulator import Simulator
 
@@ -56,21 +55,12 @@ def parse_scales(items: list[str] | None, flag: str = "--real-scale") -> dict[st
     return factors
 
 
-def scaled(p: CableParams, factors: dict[str, float]) -> CableParams:
-    """``p`` with each physical value in ``factors`` multiplied by its factor (validated: raises ParamsError)."""
-    return dataclasses.replace(p, **{k: getattr(p, k) * f for k, f in factors.items()})
-
-
 def check_same_moves(model: CableParams, real: CableParams) -> None:
     """The same action must mean the same move on the model and the real rope. Raises ParamsError naming the field."""
     for field in SAME_MOVES:
         if getattr(model, field) != getattr(real, field):
             raise ParamsError(f"the real rope's {field} = {getattr(real, field)!r} differs from the model's "
                               f"{getattr(model, field)!r}: the same actions would not mean the same moves")
-
-
-def physical_values(p: CableParams) -> dict[str, float]:
-    return {k: getattr(p, k) for k in PHYSICAL}
 
 
 def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *, max_steps: int,
@@ -195,7 +185,8 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     except ValueError as exc:
         return refuse(str(exc))
     try:
-        real = scaled(load_params(args.real_params) if args.real_params is not None else p, factors)
+        real = scaled_params(load_params(args.real_params) if args.real_params is not None else p, factors,
+                             "--real-scale")
         check_same_moves(p, real)
     except (ParamsError, OSError, ValueError) as exc:
         source = f"--real-params {args.real_params!r}" if args.real_params is not None else "--real-scale"

@@ -10,7 +10,7 @@ from benchmarks import mismatch
 from planners import SimObjective
 from planners import cem as cem_mod
 from planners.cem import CEMPlanner
-from planners.common import PHYSICAL, build_run, physical_values, scaled
+from planners.common import PHYSICAL, build_run, physical_values, scaled_params
 from diffdlo.task import decode_node_action
 
 TINY_CEM = ["--horizon", "1", "--candidates", "8", "--elites", "2", "--iterations", "1"]
@@ -37,7 +37,7 @@ def test_real_scale_changes_what_the_env_does_not_what_the_model_predicts(params
     assert planner.sim is env.sim                                   # no real params: the one simulator, as before
     assert torch.equal(executed, predicted)
 
-    real = scaled(params, {"k_d": 2.0})
+    real = scaled_params(params, {"k_d": 2.0})
     executed_real, predicted_real, planner, env = _executed_and_predicted(params, real, start)
     assert planner.sim.params == params and env.sim.params == real
     assert torch.equal(predicted_real, predicted)                   # the model's prediction is untouched
