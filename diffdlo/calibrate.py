@@ -88,6 +88,7 @@ class Fit:
     starts: torch.Tensor           # (S, 4) every start's final theta
     start_rms: list[float]
     simulator_calls: int           # batched forward + backward passes
+    at_best: tuple[torch.Tensor, torch.Tensor] | None = None   # Levenberg-Marquardt: residuals and Jacobian there
 
 
 def _bar(iterations: int, method: str, progress: bool):
@@ -174,16 +175,21 @@ def fit_gauss_newton(sim: Simulator, moves: Moves, starts: int = 1, iterations: 
     best = int(cost.argmin())
     values = torch.exp(theta[best]) * nominal_values(sim)
     return Fit(theta[best].clone(), dict(zip(PHYSICAL, values.tolist())), float(cost[best].sqrt()),
-               [float(h[best].sqrt()) for h in history], theta.clone(), cost.sqrt().tolist(), 1 + iterations)
+               [float(h[best].sqrt()) for h in history], theta.clone(), cost.sqrt().tolist(), 1 + iterations,
+               (r[best], jac[best]))
 
 
 def identifiability(sim: Simulator, moves: Moves, theta: torch.Tensor, step: float = 1e-3,
-                    identifiable_std: float = 0.05) -> dict[str, Any]:
+                    identifiable_std: float = 0.05,
+                    at_theta: tuple[torch.Tensor, torch.Tensor] | None = None) -> dict[str, Any]:
     """What the recorded moves determine at ``theta`` (4,): eigenvalues of the Gauss-Newton curvature J^T J in log
     parameters, and per named combination (COMBINATIONS) its fitted value, standard deviation (relative: a std of
     0.02 is 2 %) and whether it is identifiable. J by central differences of the residuals (one batched call)."""
-    r, jac = residuals_and_jacobian(sim, moves, theta[None], step)
-    r, jac = r[0], jac[0]                                                           # (R,), (R, 4)
+    calls_saved = at_theta is not None
+    if at_theta is None:                                    # else the fit's own, at this theta: no call needed
+        r, jac = residuals_and_jacobian(sim, moves, theta[None], step)
+        at_theta = (r[0], jac[0])
+    r, jac = at_theta                                                               # (R,), (R, 4)
     curvature = jac.T @ jac
     dof = max(r.shape[0] - 4, 1)
     sigma2 = float(r.pow(2).sum()) / dof
@@ -200,7 +206,7 @@ def identifiability(sim: Simulator, moves: Moves, theta: torch.Tensor, step: flo
         report[name] = {"fitted": float(torch.exp((c * torch.log(values)).sum())), "std": std,
                         "identifiable": std < identifiable_std}
     return {"eigenvalues": eigenvalues.tolist(), "eigenvectors": eigenvectors.T.tolist(), "sigma_m": math.sqrt(sigma2),
-            "combinations": report, "simulator_calls": 1}
+            "combinations": report, "simulator_calls": 0 if calls_saved else 1}
 
 
 # ====================================================================== from a recording
@@ -347,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
                   fit(sim, moves, starts=args.starts, iterations=args.iterations, lr=args.lr, seed=args.seed,
                       progress=not args.no_progress))
         fit_s = time.perf_counter() - t0
-        ident = identifiability(sim, moves, result.theta)
+        ident = identifiability(sim, moves, result.theta, at_theta=result.at_best)
         true = rec.meta.get("true_params") if args.synthetic else None
         results = {"data": "synthetic" if args.synthetic else str(args.data), "seed": args.seed, "method": args.method,
                    "moves": rec.n_moves, "frames_compared": int(moves.visible.sum()), "params": args.params,
