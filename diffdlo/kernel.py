@@ -6,6 +6,12 @@ takes a few seconds; nothing from PyTorch's headers is compiled. The source is p
 (default ``~/.cache/diffdlo``) under a hash of the source and flags. If no compiler is found or the build fails,
 ``available()`` is False, the reason is in ``unavailable_reason()``, one ``KernelUnavailableWarning`` says so, and
 the simulator uses its pure-torch path.
+
+Per-rope physics (diffdlo.physics.Physics) goes in as a (B, 4) float64 tensor of k_s, k_b, 1 / node_mass and the
+implicit damping factor 1 / (1 + dt k_d / node_mass) (``physics_columns``); the adjoint returns the gradient w.r.t.
+those four numbers and autograd carries it on to k_d and mass. Frames (positions every ``record_every`` substeps)
+come back per rope up to its own stop (``assemble_frames`` makes the eager path's (F, B, N, 2) of them), and their
+gradients are injected at their substeps in the backward sweep.
 """
 from __future__ import annotations
 
@@ -91,8 +97,8 @@ def _build() -> ctypes.CDLL:
     lib.diffdlo_lanes.restype = ctypes.c_int64
     ptr = ctypes.c_void_p
     for suffix in ("f32", "f64"):
-        getattr(lib, f"diffdlo_forward_{suffix}").argtypes = [ptr] * 13
-        getattr(lib, f"diffdlo_backward_{suffix}").argtypes = [ptr] * 13
+        getattr(lib, f"diffdlo_forward_{suffix}").argtypes = [ptr] * 15
+        getattr(lib, f"diffdlo_backward_{suffix}").argtypes = [ptr] * 16
         getattr(lib, f"diffdlo_hvp_{suffix}").argtypes = [ptr, ctypes.c_int64, ptr, ptr, ptr]
         for name in ("forward", "backward", "hvp"):
             getattr(lib, f"diffdlo_{name}_{suffix}").restype = None
@@ -142,44 +148,75 @@ def _suffix(dtype: torch.dtype) -> str:
 
 
 class Setup:
-    """Scalars and integers passed to the kernel for one call (fp and ip arrays, see cable.cpp)."""
+    """Scalars and integers passed to the kernel for one call (fp and ip arrays, see cable.cpp). ``record_every``
+    > 0: the forward also returns frames every that many substeps (``frame_cap`` slots per rope, enough for the
+    longest possible move)."""
 
     def __init__(self, p, batch: int, fixed_steps: int = -1, threads: int | None = None,
-                 divergence_radius: float = 100.0, lane_groups: bool = True):
+                 divergence_radius: float = 100.0, lane_groups: bool = True, record_every: int = 0):
         self.fp = torch.tensor([p.rest_length, p.k_s, p.k_b, p.dt, 1.0 / p.node_mass,
                                 1.0 / (1.0 + p.dt * p.k_d / p.node_mass), p.max_speed, p.settle_threshold,
                                 divergence_radius], dtype=torch.float64)
+        longest = fixed_steps if fixed_steps >= 0 else p.max_drag_steps + p.settle_max_substeps + 1
+        self.record_every = int(record_every)
+        self.frame_cap = longest // record_every + 1 if record_every > 0 else 0
+        self.n_nodes = p.n_nodes
         self.ip = torch.tensor([batch, p.n_nodes, p.max_drag_steps, p.settle_check_every, p.settle_max_substeps,
-                                fixed_steps, threads or torch.get_num_threads(), int(lane_groups)], dtype=torch.int64)
+                                fixed_steps, threads or torch.get_num_threads(), int(lane_groups),
+                                self.record_every, self.frame_cap], dtype=torch.int64)
+
+
+def physics_columns(p, physics, batch: int) -> torch.Tensor:
+    """(B, 4) float64 k_s, k_b, 1 / node_mass, 1 / (1 + dt k_d / node_mass) of a Physics (floats or (B,)/() tensors),
+    differentiable where its tensors are."""
+    def column(v):
+        if torch.is_tensor(v):
+            return torch.broadcast_to(v.to(device="cpu", dtype=torch.float64), (batch,))
+        return torch.full((batch,), float(v), dtype=torch.float64)
+
+    k_s, k_b, k_d, mass = (column(getattr(physics, key)) for key in ("k_s", "k_b", "k_d", "mass"))
+    node_mass = mass / p.n_nodes
+    return torch.stack([k_s, k_b, 1.0 / node_mass, 1.0 / (1.0 + p.dt * k_d / node_mass)], dim=-1)
 
 
 def _contig(*tensors):
     return [None if t is None else t.detach().contiguous() for t in tensors]
 
 
-def forward(setup: Setup, pos, vel, node, delta, speed, n_grasp):
-    """Run the kernel; returns (pos, vel, steps, settled, diverged)."""
+def forward(setup: Setup, pos, vel, node, delta, speed, n_grasp, phys=None):
+    """Run the kernel; returns (pos, vel, steps, settled, diverged, frames): frames (B, frame_cap, N, 2) where
+    ``setup.record_every`` > 0 (rope b's frame j valid for j <= steps[b] // record_every), else None."""
     lib = _load()
     pos, vel, node, delta, speed, n_grasp = _contig(pos, vel, node, delta, speed, n_grasp)
+    phys = None if phys is None else phys.detach().to(torch.float64).contiguous()
     out_pos, out_vel = torch.empty_like(pos), torch.empty_like(pos)
     batch = pos.shape[0]
     steps, settled, diverged = (torch.empty(batch, dtype=torch.int64) for _ in range(3))
+    frames = (pos.new_empty(batch, setup.frame_cap, *pos.shape[1:]) if setup.record_every > 0 else None)
     getattr(lib, f"diffdlo_forward_{_suffix(pos.dtype)}")(
         _ptr(setup.fp), _ptr(setup.ip), _ptr(pos), _ptr(vel), _ptr(node), _ptr(delta), _ptr(speed),
-        _ptr(n_grasp), _ptr(out_pos), _ptr(out_vel), _ptr(steps), _ptr(settled), _ptr(diverged))
-    return out_pos, out_vel, steps, settled.bool(), diverged.bool()
+        _ptr(n_grasp), _ptr(phys), _ptr(out_pos), _ptr(out_vel), _ptr(steps), _ptr(settled), _ptr(diverged),
+        _ptr(frames))
+    return out_pos, out_vel, steps, settled.bool(), diverged.bool(), frames
 
 
-def backward(setup: Setup, pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out):
-    """Adjoint of ``forward``: returns (grad_pos, grad_vel, grad_delta)."""
+def backward(setup: Setup, pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out, phys=None,
+             grad_frames=None, want_phys: bool = False):
+    """Adjoint of ``forward``: returns (grad_pos, grad_vel, grad_delta, grad_phys); grad_frames (B, frame_cap, N, 2)
+    the incoming gradients of the frames (or None); grad_phys (B, 4) float64 if ``want_phys``, else None."""
     lib = _load()
-    pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out = _contig(
-        pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out)
+    pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out, grad_frames = _contig(
+        pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out, grad_frames)
+    phys = None if phys is None else phys.detach().to(torch.float64).contiguous()
+    if grad_frames is not None and setup.record_every <= 0:
+        raise ValueError("frame gradients need a Setup with record_every > 0")
     grad_pos, grad_vel, grad_delta = torch.empty_like(pos), torch.empty_like(pos), torch.empty_like(delta)
+    grad_phys = pos.new_empty(pos.shape[0], 4) if want_phys else None
     getattr(lib, f"diffdlo_backward_{_suffix(pos.dtype)}")(
         _ptr(setup.fp), _ptr(setup.ip), _ptr(pos), _ptr(vel), _ptr(node), _ptr(delta), _ptr(speed),
-        _ptr(n_grasp), _ptr(grad_pos_out), _ptr(grad_vel_out), _ptr(grad_pos), _ptr(grad_vel), _ptr(grad_delta))
-    return grad_pos, grad_vel, grad_delta
+        _ptr(n_grasp), _ptr(phys), _ptr(grad_pos_out), _ptr(grad_vel_out), _ptr(grad_frames), _ptr(grad_pos),
+        _ptr(grad_vel), _ptr(grad_delta), _ptr(grad_phys))
+    return grad_pos, grad_vel, grad_delta, None if grad_phys is None else grad_phys.to(torch.float64)
 
 
 def hvp(p, pos: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -193,20 +230,51 @@ def hvp(p, pos: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
 
 
 class KernelRun(torch.autograd.Function):
-    """Differentiable kernel call: (pos, vel, delta) -> (pos, vel), plus non-differentiable run statistics."""
+    """Differentiable kernel call: (pos, vel, delta, phys) -> (pos, vel, frames), plus non-differentiable run
+    statistics. ``phys``: None or the (B, 4) of ``physics_columns``; frames: an empty tensor without recording."""
 
     @staticmethod
-    def forward(ctx, setup, pos, vel, node, delta, speed, n_grasp):
-        out_pos, out_vel, steps, settled, diverged = forward(setup, pos, vel, node, delta, speed, n_grasp)
+    def forward(ctx, setup, pos, vel, node, delta, speed, n_grasp, phys=None):
+        out_pos, out_vel, steps, settled, diverged, frames = forward(setup, pos, vel, node, delta, speed, n_grasp,
+                                                                     phys)
         ctx.setup = setup
-        ctx.save_for_backward(pos, vel, node, delta, speed, n_grasp)
+        ctx.set_materialize_grads(False)        # unused outputs (vel, frames) send None, not buffers of zeros
+        ctx.save_for_backward(pos, vel, node, delta, speed, n_grasp, phys)
         ctx.mark_non_differentiable(steps, settled, diverged)
-        return out_pos, out_vel, steps, settled, diverged
+        if frames is None:
+            frames = pos.new_empty(0)
+            ctx.mark_non_differentiable(frames)
+        return out_pos, out_vel, steps, settled, diverged, frames
 
     @staticmethod
-    def backward(ctx, grad_pos, grad_vel, *_):
-        pos, vel, node, delta, speed, n_grasp = ctx.saved_tensors
+    def backward(ctx, grad_pos, grad_vel, _steps, _settled, _diverged, grad_frames):
+        pos, vel, node, delta, speed, n_grasp, phys = ctx.saved_tensors
         if grad_pos is None:
             grad_pos = torch.zeros_like(pos)
-        g_pos, g_vel, g_delta = backward(ctx.setup, pos, vel, node, delta, speed, n_grasp, grad_pos, grad_vel)
-        return None, g_pos, g_vel, None, g_delta, None, None
+        if grad_frames is not None and grad_frames.numel() == 0:
+            grad_frames = None
+        if grad_pos is None and grad_vel is None and grad_frames is None:
+            return (None,) * 8
+        want_phys = phys is not None and ctx.needs_input_grad[7]
+        g_pos, g_vel, g_delta, g_phys = backward(ctx.setup, pos, vel, node, delta, speed, n_grasp, grad_pos, grad_vel,
+                                                 phys, grad_frames, want_phys)
+        return None, g_pos, g_vel, None, g_delta, None, None, g_phys
+
+
+def assemble_frames(setup: Setup, buffer: torch.Tensor, pos: torch.Tensor, steps: torch.Tensor,
+                    differentiable: bool) -> torch.Tensor:
+    """(F, B, N, 2) frames as ``Simulator.move``'s eager loop records them, from the kernel's per-rope ``buffer``
+    (B, frame_cap, N, 2) and final ``pos``: a frame at every k = 0, E, 2E, ... up to the longest rope's last
+    substep (a rope that stopped earlier stays frozen at its final pos), then the final pos appended unless the
+    last frame already is it (with detached frames the eager loop always appends it)."""
+    every = setup.record_every
+    if not differentiable:
+        buffer, pos = buffer.detach(), pos.detach()
+    last = int(steps.max())
+    count = last // every + 1
+    grid = buffer[:, :count]
+    frozen = torch.arange(count)[None, :] > (steps // every)[:, None]              # (B, F): past the rope's stop
+    frames = torch.where(frozen[..., None, None], pos[:, None], grid).transpose(0, 1)
+    if not differentiable or last % every != 0:
+        frames = torch.cat([frames, pos[None]])
+    return frames

@@ -3,8 +3,9 @@
 ``Physics(k_s, k_b, k_d, mass)`` holds one value per rope of a batch (tensors of shape (B,), or floats shared by
 all ropes), so a batch can hold many candidate parameter sets at once: the calibration's several starts, or a
 population of a black-box fit. ``Simulator.move(..., physics=...)`` and ``integrate(..., physics=...)`` use them
-instead of the params' numbers; gradients flow to every tensor that requires them. That path runs the eager torch
-loop (the fused kernel's adjoint does not carry parameter gradients yet).
+instead of the params' numbers; gradients flow to every tensor that requires them. They run in the fused C++
+kernel where it applies (CPU, kinematic controller: its adjoint carries the parameter gradients, and those of
+recorded frames), else in the eager torch loop.
 """
 from __future__ import annotations
 

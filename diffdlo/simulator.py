@@ -49,10 +49,10 @@ BACKENDS = ("auto", "kernel", "torch")
 class Simulator:
     """Batched planar mass-spring cable on ``device`` in ``dtype``. README "Use the simulator" shows the API.
 
-    ``backend``: "torch" is the eager reference path (every controller, frame recording, any device);
-    "kernel" is the fused C++ CPU kernel (kinematic controller; diffdlo/csrc/cable.cpp) with a hand-written
-    adjoint; "auto" (default) uses the kernel where it applies (CPU tensors, kinematic drag, no frame recording)
-    and the torch path elsewhere. Both run the same scheme and agree to rounding.
+    ``backend``: "torch" is the eager reference path (every controller, any device); "kernel" is the fused C++
+    CPU kernel (kinematic controller; diffdlo/csrc/cable.cpp) with a hand-written adjoint, per-rope physics and
+    frame recording included; "auto" (default) uses the kernel where it applies (CPU tensors, kinematic drag) and
+    the torch path elsewhere. Both run the same scheme and agree to rounding.
     """
 
     def __init__(self, params: CableParams | str | None = None, device: torch.device | str = "cpu",
@@ -87,8 +87,9 @@ class Simulator:
                 f"device={str(self.device)!r}, dtype={self.dtype}, backend={self.backend!r})")
 
     def uses_kernel(self, record_every: int = 0) -> bool:
-        """Whether moves and free evolution run in the fused C++ kernel."""
-        if self.backend == "torch" or self.device.type != "cpu" or record_every > 0:
+        """Whether moves and free evolution run in the fused C++ kernel (with or without per-rope physics and frame
+        recording: ``record_every`` no longer matters and is kept for callers that pass it)."""
+        if self.backend == "torch" or self.device.type != "cpu":
             return False
         return self.params.controller == "kinematic" and (self.backend == "kernel" or kernel.available())
 
@@ -166,7 +167,7 @@ class Simulator:
     def integrate(self, pos: torch.Tensor, vel: torch.Tensor | None, n_substeps: int,
                   physics: Physics | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Free evolution (no grasp) for n_substeps substeps of dt. Returns (pos, vel). ``physics``: per-rope
-        parameters (diffdlo.physics), differentiable; they run the eager path."""
+        parameters (diffdlo.physics), differentiable (in the kernel too, where it applies)."""
         self._check_state("pos", pos)
         if physics is not None:
             physics.check(pos.shape[0], self.params.n_nodes)
@@ -174,13 +175,14 @@ class Simulator:
         self._check_state("vel", vel)
         if not isinstance(n_substeps, int) or n_substeps < 0:
             raise ValueError(f"n_substeps must be a non-negative integer, got {n_substeps!r}")
-        if n_substeps > 0 and self.uses_kernel() and physics is None:
+        if n_substeps > 0 and self.uses_kernel():
             batch = pos.shape[0]
             setup = kernel.Setup(self.params, batch, fixed_steps=n_substeps, divergence_radius=DIVERGENCE_RADIUS)
             zeros = torch.zeros(batch, dtype=torch.int64)
-            pos, vel, _, _, diverged = kernel.KernelRun.apply(
+            phys = None if physics is None else kernel.physics_columns(self.params, physics, batch)
+            pos, vel, _, _, diverged, _ = kernel.KernelRun.apply(
                 setup, pos, vel, zeros, torch.zeros(batch, 2, dtype=self.dtype),
-                torch.full((batch,), self.params.max_speed, dtype=self.dtype), zeros)
+                torch.full((batch,), self.params.max_speed, dtype=self.dtype), zeros, phys)
             if diverged.any():
                 self._check_finite(pos, f"after {n_substeps} free substeps")
             return pos, vel
@@ -207,9 +209,9 @@ class Simulator:
         substeps after its release, capped at ``settle_max_substeps``) and is frozen once settled, so batch
         members never influence each other. Differentiable w.r.t. ``pos``, ``delta`` (and ``vel``).
         With ``return_info`` returns ``(pos, MoveInfo)``; ``record_every > 0`` also records frames. ``physics``:
-        per-rope k_s, k_b, k_d and mass (diffdlo.physics) in place of the params' numbers, differentiable; they run
-        the eager path. ``differentiable_frames``: the recorded frames keep their graph (a loss over a trajectory,
-        as the calibration fits), instead of detached copies for pictures.
+        per-rope k_s, k_b, k_d and mass (diffdlo.physics) in place of the params' numbers, differentiable (in the
+        kernel too, where it applies). ``differentiable_frames``: the recorded frames keep their graph (a loss over
+        a trajectory, as the calibration fits), instead of detached copies for pictures.
         """
         p = self.params
         self._check_state("pos", pos)
@@ -224,8 +226,9 @@ class Simulator:
         distance = delta.norm(dim=-1)
         speed = control.drag_speed(distance, p)
         path_steps = control.path_substeps(distance, p)                       # (B,) on device
-        if self.uses_kernel(record_every) and physics is None:
-            return self._move_kernel(pos, vel, node, delta, speed, path_steps, return_info)
+        if self.uses_kernel(record_every):
+            return self._move_kernel(pos, vel, node, delta, speed, path_steps, return_info,
+                                     record_every if return_info else 0, physics, differentiable_frames)
         grasp_steps = torch.where(path_steps > 0, path_steps + control.hold_substeps(p), path_steps)
         grasp_steps_cpu = grasp_steps.cpu()
         grasped = torch.nn.functional.one_hot(node, p.n_nodes).to(torch.bool).unsqueeze(-1)   # (B, N, 1)
@@ -284,18 +287,24 @@ class Simulator:
                         settled=settled, frames=torch.stack(frames) if frames is not None else None)
         return pos, info
 
-    def _move_kernel(self, pos, vel, node, delta, speed, path_steps, return_info):
-        setup = kernel.Setup(self.params, pos.shape[0], divergence_radius=DIVERGENCE_RADIUS)
+    def _move_kernel(self, pos, vel, node, delta, speed, path_steps, return_info, record_every=0, physics=None,
+                     differentiable_frames=False):
+        batch = pos.shape[0]
+        setup = kernel.Setup(self.params, batch, divergence_radius=DIVERGENCE_RADIUS, record_every=record_every)
+        phys = None if physics is None else kernel.physics_columns(self.params, physics, batch)
         # speed's dependence on delta is inside the kernel's adjoint, so it goes in detached
-        pos, _, steps, settled, diverged = kernel.KernelRun.apply(setup, pos, vel, node, delta, speed.detach(),
-                                                                  path_steps)
+        pos, _, steps, settled, diverged, buffer = kernel.KernelRun.apply(setup, pos, vel, node, delta,
+                                                                          speed.detach(), path_steps, phys)
         if diverged.any():
             ids = diverged.nonzero().flatten().tolist()
             raise SimulationError(f"simulation diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for batch "
                                   f"members {ids} during a move (node={node.tolist()}, delta={delta.tolist()})")
         if not return_info:
             return pos
-        return pos, MoveInfo(drag_substeps=path_steps, settle_substeps=steps - path_steps, settled=settled)
+        frames = (kernel.assemble_frames(setup, buffer, pos, steps, differentiable_frames) if record_every > 0
+                  else None)
+        return pos, MoveInfo(drag_substeps=path_steps, settle_substeps=steps - path_steps, settled=settled,
+                             frames=frames)
 
     # ----------------------------------------------------------------- shapes
     def random_shape(self, batch: int, generator: torch.Generator | None = None) -> torch.Tensor:

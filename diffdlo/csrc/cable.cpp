@@ -10,6 +10,11 @@
 // stops at its own substep.
 // The backward recomputes one rope's trajectory inside its own thread, then runs the adjoint with an analytic
 // Hessian-vector product of the energy: memory is O(threads x one trajectory), whatever B or the move count.
+// Optional per-rope physics (diffdlo/physics.py): phys[] holds k_s, k_b, 1/node_mass and the damping factor
+// 1/(1 + h k_d / m) of each rope (null: the scalars of fp[] for every rope); the adjoint then also returns the
+// gradients w.r.t. those four numbers (the chain rule to k_d and mass is left to autograd in diffdlo/kernel.py).
+// Optional frames: the positions at substeps 0, E, 2E, ... (E = record_every) of each rope, up to its own stop,
+// into frames[b][j] (frame_cap slots per rope); the adjoint injects their incoming gradients at those substeps.
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -42,8 +47,20 @@ struct Scalars {      // fp[] from Python, in this order
   double l0, ks, kb, h, inv_m, damp, vmax, threshold, radius;
 };
 struct Ints {         // ip[] from Python, in this order
-  int64_t B, n, max_drag, check_every, max_settle, fixed_steps, threads, use_groups;
+  int64_t B, n, max_drag, check_every, max_settle, fixed_steps, threads, use_groups, record_every, frame_cap;
 };
+
+// The scalars of rope b: fp[]'s, with the per-rope physics in place of k_s, k_b, 1/m, damp where given.
+inline Scalars rope_scalars(const Scalars& s, const double* phys, int64_t b) {
+  Scalars r = s;
+  if (phys) {
+    r.ks = phys[4 * b];
+    r.kb = phys[4 * b + 1];
+    r.inv_m = phys[4 * b + 2];
+    r.damp = phys[4 * b + 3];
+  }
+  return r;
+}
 
 template <typename T>
 struct Work {         // per-rope scratch
@@ -93,9 +110,11 @@ inline void forces(const Scalars& s, int64_t n, const T* x, Work<T>& w) {
 }
 
 // Hessian-vector product H u of the energy at x, into out (n x 2).
+// If dots != nullptr, also dots[0] = u . F_s(x), dots[1] = u . F_b(x), with F = k_s F_s + k_b F_b the forces:
+// F = -dE/dx and u . F = -sum_links dE/de_k . (u_{k+1} - u_k).
 template <typename T>
 inline void hvp(const Scalars& s, int64_t n, const T* x, const T* u, T* out, Work<T>& w,
-                const T* beta = nullptr) {
+                const T* beta = nullptr, T* dots = nullptr) {
   const int64_t L = n - 1;
   if (beta) {            // turning angles stored by the forward recomputation: skip atan2
     for (int64_t k = 0; k < L; ++k) {
@@ -133,6 +152,19 @@ inline void hvp(const Scalars& s, int64_t n, const T* x, const T* u, T* out, Wor
     const T dqy = ux / l2 - T(2) * edotu * ex / (l2 * l2);
     w.G[2 * k] = a * ux + c * edotu * ex + kb * ((dbs - dbe) * qx + (bs - be) * dqx);
     w.G[2 * k + 1] = a * uy + c * edotu * ey + kb * ((dbs - dbe) * qy + (bs - be) * dqy);
+  }
+  if (dots) {
+    T ds = 0, db = 0;
+    for (int64_t k = 0; k < L; ++k) {
+      const T ex = w.e[2 * k], ey = w.e[2 * k + 1], ux = w.we[2 * k], uy = w.we[2 * k + 1];
+      const T l2 = w.len2[k];
+      const T bs = k > 0 ? w.beta[k - 1] : T(0);
+      const T be = k < L - 1 ? w.beta[k] : T(0);
+      ds -= (T(1) - l0 / std::sqrt(l2)) * (ex * ux + ey * uy);
+      db -= (bs - be) / l2 * (-ey * ux + ex * uy);
+    }
+    dots[0] = ds;
+    dots[1] = db;
   }
   for (int64_t j = 0; j < n; ++j) {
     for (int c = 0; c < 2; ++c) {
@@ -191,10 +223,12 @@ inline void reference_adjoint(const T* d, T speed, int64_t k, T h, T vmax, const
   }
 }
 
-// Run one rope. Returns the number of substeps done; if traj != nullptr stores x_0..x_K (n*2 each).
+// Run one rope. Returns the number of substeps done; if traj != nullptr stores x_0..x_K (n*2 each), if vtraj
+// v_0..v_K, if frames the frames x_0, x_E, x_2E, ... (E = in.record_every) up to x_K.
 template <typename T>
 int64_t run_rope(const Scalars& s, const Ints& in, T* x, T* v, int64_t g, const T* d, T speed, int64_t n_grasp,
-                 T* traj, T* betas, int64_t* settled, int64_t* diverged, Work<T>& w) {
+                 T* traj, T* betas, int64_t* settled, int64_t* diverged, Work<T>& w, T* vtraj = nullptr,
+                 T* frames = nullptr) {
   const int64_t n = in.n;
   const T h = T(s.h);
   T start[2] = {x[2 * g], x[2 * g + 1]};
@@ -202,6 +236,8 @@ int64_t run_rope(const Scalars& s, const Ints& in, T* x, T* v, int64_t g, const 
   *settled = 0;
   *diverged = 0;
   if (traj) std::copy(x, x + 2 * n, traj);
+  if (vtraj) std::copy(v, v + 2 * n, vtraj);
+  if (frames) std::copy(x, x + 2 * n, frames);
   auto bad = [&]() {
     for (int64_t i = 0; i < 2 * n; ++i)
       if (!std::isfinite(x[i]) || std::abs(x[i]) > T(s.radius)) return true;
@@ -218,6 +254,8 @@ int64_t run_rope(const Scalars& s, const Ints& in, T* x, T* v, int64_t g, const 
       v[2 * g + 1] = refv[1];
     }
     if (traj) std::copy(x, x + 2 * n, traj + 2 * n * k);
+    if (vtraj) std::copy(v, v + 2 * n, vtraj + 2 * n * k);
+    if (frames && k % in.record_every == 0) std::copy(x, x + 2 * n, frames + 2 * n * (k / in.record_every));
     if (in.fixed_steps >= 0) {
       if (k >= in.fixed_steps) {
         *diverged = bad();
@@ -302,18 +340,38 @@ inline void group_links(int64_t n, const T* __restrict x, T* __restrict e, T* __
   }
 }
 
+// Per-lane physics of a group: the same numbers the per-rope path computes from its Scalars (rope_scalars), so a
+// rope gets identical arithmetic in either path and, without per-rope physics, the scalars of fp[] in every lane.
+template <typename T>
+struct LanePhys {
+  T ks[W], kb[W], hm[W], damp[W], coef[W], inv_m[W];
+  LanePhys(const Scalars& s, const double* phys, int64_t b0) {
+    for (int l = 0; l < W; ++l) {
+      const Scalars r = rope_scalars(s, phys, b0 + l);
+      ks[l] = T(r.ks);
+      kb[l] = T(r.kb);
+      hm[l] = T(r.h * r.inv_m);
+      damp[l] = T(r.damp);
+      coef[l] = T(r.h * r.inv_m * r.damp);
+      inv_m[l] = T(r.inv_m);
+    }
+  }
+};
+
 // dE/de of every link into Gp (padded) given links, squared lengths and padded angles bp; F = scatter.
 template <typename T>
-inline void group_link_grad(const Scalars& s, int64_t n, const T* __restrict e, const T* __restrict len2,
-                            const T* __restrict bp, T* __restrict Gp) {
-  const T l0 = T(s.l0), ks = T(s.ks), kb = T(s.kb);
+inline void group_link_grad(const Scalars& s, const LanePhys<T>& p, int64_t n, const T* __restrict e,
+                            const T* __restrict len2, const T* __restrict bp, T* __restrict Gp) {
+  const T l0 = T(s.l0);
+  const T* __restrict ks = p.ks;
+  const T* __restrict kb = p.kb;
   for (int64_t k = 0; k < n - 1; ++k) {
     const T* __restrict ek = e + 2 * k * W;
     T* __restrict gk = Gp + 2 * (k + 1) * W;
     for (int l = 0; l < W; ++l) {
       const T l2 = len2[k * W + l];
-      const T a = ks * (T(1) - l0 / std::sqrt(l2));
-      const T b = kb * (bp[k * W + l] - bp[(k + 1) * W + l]) / l2;
+      const T a = ks[l] * (T(1) - l0 / std::sqrt(l2));
+      const T b = kb[l] * (bp[k * W + l] - bp[(k + 1) * W + l]) / l2;
       const T ex = ek[l], ey = ek[W + l];
       gk[l] = a * ex - b * ey;
       gk[W + l] = a * ey + b * ex;
@@ -322,7 +380,8 @@ inline void group_link_grad(const Scalars& s, int64_t n, const T* __restrict e, 
 }
 
 template <typename T>
-inline void group_forces(const Scalars& s, int64_t n, const T* __restrict x, GroupWork<T>& w) {
+inline void group_forces(const Scalars& s, const LanePhys<T>& p, int64_t n, const T* __restrict x,
+                         GroupWork<T>& w) {
   T* __restrict e = w.e.data();
   T* __restrict len2 = w.len2.data();
   T* __restrict bp = w.bp.data();
@@ -337,14 +396,16 @@ inline void group_forces(const Scalars& s, int64_t n, const T* __restrict x, Gro
       bj[l] = fast_atan2(ax * by - ay * bx, ax * bx + ay * by);
     }
   }
-  group_link_grad(s, n, e, len2, bp, Gp);
+  group_link_grad(s, p, n, e, len2, bp, Gp);
   for (int64_t i = 0; i < 2 * n * W; ++i) F[i] = Gp[i + 2 * W] - Gp[i];     // F_j = G_j - G_{j-1}
 }
 
-// (H u) at x with stored padded turning angles bp (n rows of W), into out.
+// (H u) at x with stored padded turning angles bp (n rows of W), into out. If ds, db != nullptr, also per lane
+// ds = u . F_s(x), db = u . F_b(x) (see hvp).
 template <typename T>
-inline void group_hvp(const Scalars& s, int64_t n, const T* __restrict x, const T* __restrict bp,
-                      const T* __restrict u, T* __restrict out, GroupWork<T>& w) {
+inline void group_hvp(const Scalars& s, const LanePhys<T>& p, int64_t n, const T* __restrict x,
+                      const T* __restrict bp, const T* __restrict u, T* __restrict out, GroupWork<T>& w,
+                      T* __restrict ds = nullptr, T* __restrict db = nullptr) {
   T* __restrict e = w.e.data();
   T* __restrict len2 = w.len2.data();
   T* __restrict we = w.we.data();
@@ -362,7 +423,9 @@ inline void group_hvp(const Scalars& s, int64_t n, const T* __restrict x, const 
       dj[l] = q1 - q0;
     }
   }
-  const T l0 = T(s.l0), ks = T(s.ks), kb = T(s.kb);
+  const T l0 = T(s.l0);
+  const T* __restrict ks = p.ks;
+  const T* __restrict kb = p.kb;
   for (int64_t k = 0; k < n - 1; ++k) {
     const T* __restrict ek = e + 2 * k * W;
     const T* __restrict uk = we + 2 * k * W;
@@ -371,16 +434,30 @@ inline void group_hvp(const Scalars& s, int64_t n, const T* __restrict x, const 
       const T ex = ek[l], ey = ek[W + l], ux = uk[l], uy = uk[W + l];
       const T l2 = len2[k * W + l], len = std::sqrt(l2);
       const T edotu = ex * ux + ey * uy;
-      const T a = ks * (T(1) - l0 / len), c = ks * l0 / (len * l2);
-      const T db = dbp[k * W + l] - dbp[(k + 1) * W + l], bb = bp[k * W + l] - bp[(k + 1) * W + l];
+      const T a = ks[l] * (T(1) - l0 / len), c = ks[l] * l0 / (len * l2);
+      const T db_ = dbp[k * W + l] - dbp[(k + 1) * W + l], bb = bp[k * W + l] - bp[(k + 1) * W + l];
       const T inv = T(1) / l2, two = T(2) * edotu * inv * inv;
       const T qx = -ey * inv, qy = ex * inv;
       const T dqx = -uy * inv + two * ey, dqy = ux * inv - two * ex;
-      gk[l] = a * ux + c * edotu * ex + kb * (db * qx + bb * dqx);
-      gk[W + l] = a * uy + c * edotu * ey + kb * (db * qy + bb * dqy);
+      gk[l] = a * ux + c * edotu * ex + kb[l] * (db_ * qx + bb * dqx);
+      gk[W + l] = a * uy + c * edotu * ey + kb[l] * (db_ * qy + bb * dqy);
     }
   }
   for (int64_t i = 0; i < 2 * n * W; ++i) out[i] = Gp[i] - Gp[i + 2 * W];   // (H u)_j = dG_{j-1} - dG_j
+  if (ds) {
+    for (int l = 0; l < W; ++l) ds[l] = db[l] = T(0);
+    for (int64_t k = 0; k < n - 1; ++k) {
+      const T* __restrict ek = e + 2 * k * W;
+      const T* __restrict uk = we + 2 * k * W;
+      for (int l = 0; l < W; ++l) {
+        const T ex = ek[l], ey = ek[W + l], ux = uk[l], uy = uk[W + l];
+        const T l2 = len2[k * W + l];
+        const T bb = bp[k * W + l] - bp[(k + 1) * W + l];
+        ds[l] -= (T(1) - l0 / std::sqrt(l2)) * (ex * ux + ey * uy);
+        db[l] -= bb / l2 * (-ey * ux + ex * uy);
+      }
+    }
+  }
 }
 
 struct Lane {          // per-lane action and run record
@@ -388,12 +465,17 @@ struct Lane {          // per-lane action and run record
   bool active;
 };
 
-// Run W ropes in lockstep; x, v in group layout. Returns the substeps of the longest lane.
+// Run W ropes in lockstep; x, v in group layout. Returns the substeps of the longest lane. traj, vtraj, betas:
+// the trajectory in group layout (for the adjoint); frames: the batch's frame buffer (B, frame_cap, n, 2), into
+// which the lanes of ropes b0.. write every record_every substeps (a finished lane writes its frozen state).
 template <typename T>
-int64_t run_group(const Scalars& s, const Ints& in, T* x, T* v, Lane* lane, const T* d, const T* speed, T* traj,
-                  T* betas, GroupWork<T>& w) {
+int64_t run_group(const Scalars& s, const LanePhys<T>& p, const Ints& in, T* x, T* v, Lane* lane, const T* d,
+                  const T* speed, T* traj, T* betas, GroupWork<T>& w, T* vtraj = nullptr, T* frames = nullptr,
+                  int64_t b0 = 0) {
   const int64_t n = in.n, rows = 2 * n;
-  const T h = T(s.h), hm = T(s.h * s.inv_m), damp = T(s.damp);
+  const T h = T(s.h);
+  const T* __restrict hm = p.hm;
+  const T* __restrict damp = p.damp;
   T start[W][2], act[W];
   for (int l = 0; l < W; ++l) {
     start[l][0] = x[(2 * lane[l].g) * W + l];
@@ -402,7 +484,15 @@ int64_t run_group(const Scalars& s, const Ints& in, T* x, T* v, Lane* lane, cons
     lane[l].settled = lane[l].diverged = 0;
     act[l] = T(1);
   }
+  auto record = [&](int64_t j) {
+    for (int l = 0; l < W; ++l) {
+      T* dst = frames + ((b0 + l) * in.frame_cap + j) * rows;
+      for (int64_t i = 0; i < rows; ++i) dst[i] = x[i * W + l];
+    }
+  };
   if (traj) std::copy(x, x + rows * W, traj);
+  if (vtraj) std::copy(v, v + rows * W, vtraj);
+  if (frames) record(0);
   auto bad = [&](int l) {
     for (int64_t i = 0; i < rows; ++i) {
       const T xi = x[i * W + l];
@@ -411,14 +501,14 @@ int64_t run_group(const Scalars& s, const Ints& in, T* x, T* v, Lane* lane, cons
     return false;
   };
   for (int64_t k = 1;; ++k) {
-    group_forces(s, n, x, w);
+    group_forces(s, p, n, x, w);
     const T* __restrict F = w.F.data();
     for (int64_t i = 0; i < rows; ++i) {
       T* __restrict xi = x + i * W;
       T* __restrict vi = v + i * W;
       for (int l = 0; l < W; ++l) {
         const T vo = vi[l], xo = xi[l];
-        const T vn = (vo + hm * F[i * W + l]) * damp;
+        const T vn = (vo + hm[l] * F[i * W + l]) * damp[l];
         const T xn = xo + h * vn;
         vi[l] = act[l] != T(0) ? vn : vo;
         xi[l] = act[l] != T(0) ? xn : xo;
@@ -437,6 +527,8 @@ int64_t run_group(const Scalars& s, const Ints& in, T* x, T* v, Lane* lane, cons
       }
     }
     if (traj) std::copy(x, x + rows * W, traj + rows * W * k);
+    if (vtraj) std::copy(v, v + rows * W, vtraj + rows * W * k);
+    if (frames && k % in.record_every == 0) record(k / in.record_every);
     bool any = false;
     for (int l = 0; l < W; ++l) {
       if (!lane[l].active) continue;
@@ -494,17 +586,18 @@ void from_group(int64_t n, const T* src, int64_t b0, T* dst) {
 
 template <typename T>
 void forward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, const T* vel, const int64_t* node,
-                   const T* delta, const T* speed, const int64_t* n_grasp, T* out_pos, T* out_vel,
-                   int64_t* out_steps, int64_t* out_settled, int64_t* out_diverged) {
+                   const T* delta, const T* speed, const int64_t* n_grasp, const double* phys, T* out_pos,
+                   T* out_vel, int64_t* out_steps, int64_t* out_settled, int64_t* out_diverged, T* frames) {
   const int64_t n = in.n;
   GroupWork<T> w(n);
+  const LanePhys<T> p(s, phys, b0);
   std::vector<T> x(2 * n * W), v(2 * n * W, T(0));
   to_group(n, pos, b0, x.data());
   if (vel) to_group(n, vel, b0, v.data());
   Lane lane[W];
   for (int l = 0; l < W; ++l) lane[l] = Lane{node[b0 + l], n_grasp[b0 + l], 0, 0, 0, true};
-  run_group(s, in, x.data(), v.data(), lane, delta + 2 * b0, speed + b0, static_cast<T*>(nullptr),
-            static_cast<T*>(nullptr), w);
+  run_group(s, p, in, x.data(), v.data(), lane, delta + 2 * b0, speed + b0, static_cast<T*>(nullptr),
+            static_cast<T*>(nullptr), w, static_cast<T*>(nullptr), frames, b0);
   from_group(n, x.data(), b0, out_pos);
   from_group(n, v.data(), b0, out_vel);
   for (int l = 0; l < W; ++l) {
@@ -516,12 +609,15 @@ void forward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, c
 
 template <typename T>
 void backward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, const T* vel, const int64_t* node,
-                    const T* delta, const T* speed, const int64_t* n_grasp, const T* grad_out_pos,
-                    const T* grad_out_vel, T* grad_pos, T* grad_vel, T* grad_delta) {
+                    const T* delta, const T* speed, const int64_t* n_grasp, const double* phys,
+                    const T* grad_out_pos, const T* grad_out_vel, const T* grad_frames, T* grad_pos, T* grad_vel,
+                    T* grad_delta, T* grad_phys) {
   const int64_t n = in.n, rows = 2 * n;
   const int64_t max_steps = in.fixed_steps >= 0 ? in.fixed_steps : in.max_drag + in.max_settle + 1;
   GroupWork<T> w(n);
+  const LanePhys<T> p(s, phys, b0);
   std::unique_ptr<T[]> traj(new T[rows * W * (max_steps + 2)]), betas(new T[n * W * (max_steps + 1)]);
+  std::unique_ptr<T[]> vtraj(grad_phys ? new T[rows * W * (max_steps + 2)] : nullptr);
   std::vector<T> x(rows * W), v(rows * W, T(0)), gx(rows * W), gv(rows * W, T(0)), u(rows * W), hu(rows * W);
   to_group(n, pos, b0, x.data());
   if (vel) to_group(n, vel, b0, v.data());
@@ -529,23 +625,47 @@ void backward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, 
   for (int l = 0; l < W; ++l) lane[l] = Lane{node[b0 + l], n_grasp[b0 + l], 0, 0, 0, true};
   const T* d = delta + 2 * b0;
   const T* sp = speed + b0;
-  const int64_t K = run_group(s, in, x.data(), v.data(), lane, d, sp, traj.get(), betas.get(), w);
+  const int64_t K = run_group(s, p, in, x.data(), v.data(), lane, d, sp, traj.get(), betas.get(), w, vtraj.get());
   to_group(n, grad_out_pos, b0, gx.data());
   if (grad_out_vel) to_group(n, grad_out_vel, b0, gv.data());
-  const T h = T(s.h), vmax = T(s.vmax), damp = T(s.damp);
-  const T coef = T(s.h * s.inv_m * s.damp);
+  const T h = T(s.h), vmax = T(s.vmax);
+  const T* __restrict damp = p.damp;
+  const T* __restrict coef = p.coef;
   T gd[W][2] = {}, gstart[W][2] = {}, act[W];
+  T ds[W], db[W], acc_s[W] = {}, acc_b[W] = {}, acc_w[W] = {}, uv[W];
+  // frame j of lane l's rope, when its gradient is injected at substep j * record_every
+  auto frame_grad = [&](int l, int64_t j) { return grad_frames + ((b0 + l) * in.frame_cap + j) * rows; };
   for (int64_t k = K; k >= 1; --k) {
+    const bool on_frame = grad_frames && k % in.record_every == 0;
     for (int l = 0; l < W; ++l) {
       act[l] = k <= lane[l].steps ? T(1) : T(0);
-      if (k > lane[l].steps || k > lane[l].n_grasp) continue;
+      if (k > lane[l].steps) continue;
+      if (on_frame) {
+        const T* gf = frame_grad(l, k / in.record_every);
+        for (int64_t i = 0; i < rows; ++i) gx[i * W + l] += gf[i];
+      }
+      if (k > lane[l].n_grasp) continue;
       const int64_t g = lane[l].g;
       T a[2] = {gx[(2 * g) * W + l], gx[(2 * g + 1) * W + l]}, c[2] = {gv[(2 * g) * W + l], gv[(2 * g + 1) * W + l]};
       reference_adjoint(d + 2 * l, sp[l], k, h, vmax, a, c, gd[l], gstart[l]);
       gx[(2 * g) * W + l] = gx[(2 * g + 1) * W + l] = gv[(2 * g) * W + l] = gv[(2 * g + 1) * W + l] = T(0);
     }
     for (int64_t i = 0; i < rows * W; ++i) u[i] = gv[i] + h * gx[i];
-    group_hvp(s, n, traj.get() + rows * W * (k - 1), betas.get() + n * W * (k - 1), u.data(), hu.data(), w);
+    group_hvp(s, p, n, traj.get() + rows * W * (k - 1), betas.get() + n * W * (k - 1), u.data(), hu.data(), w,
+              grad_phys ? ds : static_cast<T*>(nullptr), grad_phys ? db : static_cast<T*>(nullptr));
+    if (grad_phys) {
+      // d v_k = damp [(v_{k-1} + h/m F) d damp/damp + h d(1/m) F + h/m (d k_s F_s + d k_b F_b)], F = k_s F_s + k_b F_b
+      const T* __restrict vk = vtraj.get() + rows * W * (k - 1);
+      for (int l = 0; l < W; ++l) uv[l] = T(0);
+      for (int64_t i = 0; i < rows; ++i)
+        for (int l = 0; l < W; ++l) uv[l] += u[i * W + l] * vk[i * W + l];
+      for (int l = 0; l < W; ++l) {
+        if (act[l] == T(0)) continue;
+        acc_s[l] += ds[l];
+        acc_b[l] += db[l];
+        acc_w[l] += uv[l] + h * p.inv_m[l] * (p.ks[l] * ds[l] + p.kb[l] * db[l]);
+      }
+    }
     for (int64_t i = 0; i < rows; ++i) {
       T* __restrict gxi = gx.data() + i * W;
       T* __restrict gvi = gv.data() + i * W;
@@ -553,18 +673,29 @@ void backward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, 
       const T* __restrict hui = hu.data() + i * W;
       for (int l = 0; l < W; ++l) {
         const T gxo = gxi[l], gvo = gvi[l];
-        gxi[l] = act[l] != T(0) ? gxo - coef * hui[l] : gxo;
-        gvi[l] = act[l] != T(0) ? damp * ui[l] : gvo;
+        gxi[l] = act[l] != T(0) ? gxo - coef[l] * hui[l] : gxo;
+        gvi[l] = act[l] != T(0) ? damp[l] * ui[l] : gvo;
       }
     }
   }
   for (int l = 0; l < W; ++l) {
+    if (grad_frames) {
+      const T* gf = frame_grad(l, 0);
+      for (int64_t i = 0; i < rows; ++i) gx[i * W + l] += gf[i];
+    }
     if (lane[l].n_grasp > 0) {
       gx[(2 * lane[l].g) * W + l] += gstart[l][0];
       gx[(2 * lane[l].g + 1) * W + l] += gstart[l][1];
     }
     grad_delta[2 * (b0 + l)] = gd[l][0];
     grad_delta[2 * (b0 + l) + 1] = gd[l][1];
+    if (grad_phys) {
+      T* gp = grad_phys + 4 * (b0 + l);
+      gp[0] = coef[l] * acc_s[l];
+      gp[1] = coef[l] * acc_b[l];
+      gp[2] = h * damp[l] * (p.ks[l] * acc_s[l] + p.kb[l] * acc_b[l]);
+      gp[3] = acc_w[l];
+    }
   }
   from_group(n, gx.data(), b0, grad_pos);
   from_group(n, gv.data(), b0, grad_vel);
@@ -572,19 +703,20 @@ void backward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, 
 
 template <typename T>
 void forward(const double* fp, const int64_t* ip, const T* pos, const T* vel, const int64_t* node, const T* delta,
-             const T* speed, const int64_t* n_grasp, T* out_pos, T* out_vel, int64_t* out_steps,
-             int64_t* out_settled, int64_t* out_diverged) {
-  const Scalars s{fp[0], fp[1], fp[2], fp[3], fp[4], fp[5], fp[6], fp[7], fp[8]};
-  const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6], ip[7]};
+             const T* speed, const int64_t* n_grasp, const double* phys, T* out_pos, T* out_vel, int64_t* out_steps,
+             int64_t* out_settled, int64_t* out_diverged, T* frames) {
+  const Scalars s0{fp[0], fp[1], fp[2], fp[3], fp[4], fp[5], fp[6], fp[7], fp[8]};
+  const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6], ip[7], ip[8], ip[9]};
   const int64_t n = in.n;
   const int64_t groups = in.use_groups ? in.B / W : 0, first = groups * W;
   parallel_for(groups + in.B - first, in.threads, [&](int64_t task) {
     if (task < groups) {
-      forward_group(s, in, task * W, pos, vel, node, delta, speed, n_grasp, out_pos, out_vel, out_steps,
-                    out_settled, out_diverged);
+      forward_group(s0, in, task * W, pos, vel, node, delta, speed, n_grasp, phys, out_pos, out_vel, out_steps,
+                    out_settled, out_diverged, frames);
       return;
     }
     const int64_t b = first + task - groups;
+    const Scalars s = rope_scalars(s0, phys, b);
     Work<T> w(n);
     T* x = out_pos + 2 * n * b;
     T* v = out_vel + 2 * n * b;
@@ -592,29 +724,32 @@ void forward(const double* fp, const int64_t* ip, const T* pos, const T* vel, co
     if (vel) std::copy(vel + 2 * n * b, vel + 2 * n * (b + 1), v);
     else std::fill(v, v + 2 * n, T(0));
     out_steps[b] = run_rope(s, in, x, v, node[b], delta + 2 * b, speed[b], n_grasp[b], static_cast<T*>(nullptr),
-                            static_cast<T*>(nullptr), out_settled + b, out_diverged + b, w);
+                            static_cast<T*>(nullptr), out_settled + b, out_diverged + b, w,
+                            static_cast<T*>(nullptr), frames ? frames + b * in.frame_cap * 2 * n : nullptr);
   });
 }
 
 template <typename T>
 void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, const int64_t* node, const T* delta,
-              const T* speed, const int64_t* n_grasp, const T* grad_out_pos, const T* grad_out_vel, T* grad_pos,
-              T* grad_vel, T* grad_delta) {
-  const Scalars s{fp[0], fp[1], fp[2], fp[3], fp[4], fp[5], fp[6], fp[7], fp[8]};
-  const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6], ip[7]};
+              const T* speed, const int64_t* n_grasp, const double* phys, const T* grad_out_pos,
+              const T* grad_out_vel, const T* grad_frames, T* grad_pos, T* grad_vel, T* grad_delta, T* grad_phys) {
+  const Scalars s0{fp[0], fp[1], fp[2], fp[3], fp[4], fp[5], fp[6], fp[7], fp[8]};
+  const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6], ip[7], ip[8], ip[9]};
   const int64_t n = in.n;
   const int64_t max_steps = in.fixed_steps >= 0 ? in.fixed_steps : in.max_drag + in.max_settle + 1;
   const int64_t groups = in.use_groups ? in.B / W : 0, first = groups * W;
   parallel_for(groups + in.B - first, in.threads, [&](int64_t task) {
     if (task < groups) {
-      backward_group(s, in, task * W, pos, vel, node, delta, speed, n_grasp, grad_out_pos, grad_out_vel, grad_pos,
-                     grad_vel, grad_delta);
+      backward_group(s0, in, task * W, pos, vel, node, delta, speed, n_grasp, phys, grad_out_pos, grad_out_vel,
+                     grad_frames, grad_pos, grad_vel, grad_delta, grad_phys);
       return;
     }
     const int64_t b = first + task - groups;
+    const Scalars s = rope_scalars(s0, phys, b);
     Work<T> w(n);
     // uninitialised: every slot read is written by the recomputation first
     std::unique_ptr<T[]> traj(new T[2 * n * (max_steps + 2)]), betas(new T[(n - 2) * (max_steps + 1)]);
+    std::unique_ptr<T[]> vtraj(grad_phys ? new T[2 * n * (max_steps + 2)] : nullptr);
     std::vector<T> x(2 * n), v(2 * n), hu(2 * n);
     std::copy(pos + 2 * n * b, pos + 2 * n * (b + 1), x.begin());
     if (vel) std::copy(vel + 2 * n * b, vel + 2 * n * (b + 1), v.begin());
@@ -624,17 +759,23 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
     const T sp = speed[b];
     int64_t settled, diverged;
     const int64_t K = run_rope(s, in, x.data(), v.data(), g, d, sp, n_grasp[b], traj.get(), betas.get(), &settled,
-                               &diverged, w);
+                               &diverged, w, vtraj.get());
 
     T* gx = grad_pos + 2 * n * b;
     T* gv = grad_vel + 2 * n * b;
     std::copy(grad_out_pos + 2 * n * b, grad_out_pos + 2 * n * (b + 1), gx);
     if (grad_out_vel) std::copy(grad_out_vel + 2 * n * b, grad_out_vel + 2 * n * (b + 1), gv);
     else std::fill(gv, gv + 2 * n, T(0));
+    const T* gf = grad_frames ? grad_frames + b * in.frame_cap * 2 * n : nullptr;
     T gd[2] = {0, 0}, gstart[2] = {0, 0};
+    T dots[2], acc_s = 0, acc_b = 0, acc_w = 0;
     const T h = T(s.h), vmax = T(s.vmax);
     const T coef = h * s.inv_m * s.damp;
     for (int64_t k = K; k >= 1; --k) {
+      if (gf && k % in.record_every == 0) {
+        const T* f = gf + 2 * n * (k / in.record_every);
+        for (int64_t i = 0; i < 2 * n; ++i) gx[i] += f[i];
+      }
       if (k <= n_grasp[b]) {
         T* a = gx + 2 * g;
         T* c = gv + 2 * g;
@@ -643,18 +784,36 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
       }
       // x_k = x_{k-1} + h v_k, v_k = damp (v_{k-1} + h/m F(x_{k-1})), F = -grad E
       for (int64_t i = 0; i < 2 * n; ++i) v[i] = gv[i] + h * gx[i];      // v reused as u
-      hvp(s, n, traj.get() + 2 * n * (k - 1), v.data(), hu.data(), w, betas.get() + (n - 2) * (k - 1));
+      hvp(s, n, traj.get() + 2 * n * (k - 1), v.data(), hu.data(), w, betas.get() + (n - 2) * (k - 1),
+          grad_phys ? dots : static_cast<T*>(nullptr));
+      if (grad_phys) {     // see backward_group
+        const T* vk = vtraj.get() + 2 * n * (k - 1);
+        T uv = 0;
+        for (int64_t i = 0; i < 2 * n; ++i) uv += v[i] * vk[i];
+        acc_s += dots[0];
+        acc_b += dots[1];
+        acc_w += uv + h * T(s.inv_m) * (T(s.ks) * dots[0] + T(s.kb) * dots[1]);
+      }
       for (int64_t i = 0; i < 2 * n; ++i) {
         gx[i] -= coef * hu[i];
         gv[i] = T(s.damp) * v[i];
       }
     }
+    if (gf)
+      for (int64_t i = 0; i < 2 * n; ++i) gx[i] += gf[i];
     if (n_grasp[b] > 0) {
       gx[2 * g] += gstart[0];
       gx[2 * g + 1] += gstart[1];
     }
     grad_delta[2 * b] = gd[0];
     grad_delta[2 * b + 1] = gd[1];
+    if (grad_phys) {
+      T* gp = grad_phys + 4 * b;
+      gp[0] = coef * acc_s;
+      gp[1] = coef * acc_b;
+      gp[2] = h * T(s.damp) * (T(s.ks) * acc_s + T(s.kb) * acc_b);
+      gp[3] = acc_w;
+    }
   });
 }
 
@@ -665,13 +824,17 @@ int64_t diffdlo_lanes() { return W; }
 #define DIFFDLO_EXPORT(T, SUFFIX)                                                                                  \
   void diffdlo_forward_##SUFFIX(const double* fp, const int64_t* ip, const T* pos, const T* vel,                   \
                                 const int64_t* node, const T* delta, const T* speed, const int64_t* n_grasp,       \
-                                T* out_pos, T* out_vel, int64_t* steps, int64_t* settled, int64_t* diverged) {     \
-    forward<T>(fp, ip, pos, vel, node, delta, speed, n_grasp, out_pos, out_vel, steps, settled, diverged);         \
+                                const double* phys, T* out_pos, T* out_vel, int64_t* steps, int64_t* settled,      \
+                                int64_t* diverged, T* frames) {                                                    \
+    forward<T>(fp, ip, pos, vel, node, delta, speed, n_grasp, phys, out_pos, out_vel, steps, settled, diverged,    \
+               frames);                                                                                            \
   }                                                                                                                \
   void diffdlo_backward_##SUFFIX(const double* fp, const int64_t* ip, const T* pos, const T* vel,                  \
                                  const int64_t* node, const T* delta, const T* speed, const int64_t* n_grasp,      \
-                                 const T* gpos_out, const T* gvel_out, T* gpos, T* gvel, T* gdelta) {              \
-    backward<T>(fp, ip, pos, vel, node, delta, speed, n_grasp, gpos_out, gvel_out, gpos, gvel, gdelta);            \
+                                 const double* phys, const T* gpos_out, const T* gvel_out, const T* gframes,       \
+                                 T* gpos, T* gvel, T* gdelta, T* gphys) {                                          \
+    backward<T>(fp, ip, pos, vel, node, delta, speed, n_grasp, phys, gpos_out, gvel_out, gframes, gpos, gvel,      \
+                gdelta, gphys);                                                                                    \
   }                                                                                                                \
   void diffdlo_hvp_##SUFFIX(const double* fp, int64_t n, const T* x, const T* u, T* out) {                         \
     const Scalars s{fp[0], fp[1], fp[2], fp[3], fp[4], fp[5], fp[6], fp[7], fp[8]};                                \
