@@ -1,0 +1,349 @@
+"""Analytic policy gradients (APG; SHAC-style with ``critic: true``, Xu et al. 2022): a reactive policy trained by
+backpropagating the task's reward through H chained ``Simulator.move`` calls (the fused kernel's adjoint), in one
+file: config -> networks -> loop.
+
+    python -m agents.apg --target random --total-steps 5000 --out runs/apg
+
+Each update rolls the training env's ropes H moves on with the current policy, keeping the autograd graph:
+observation (built from the rope's positions, differentiable, as ``diffdlo.task.observe`` builds it) -> policy ->
+drag -> ``Simulator.move`` (float32, the env's dtype: the env replays the same move without a graph for its
+bookkeeping and gives the identical rope) -> the env's reward (``diffdlo.rewards.reward``, e.g. shape_gain: the cm
+of shape error removed). The pathwise objective J = sum_t gamma^t r_t (restarted at each episode end; a reset rope
+carries no gradient back) is maximized by Adam on the actor. With ``critic: true`` a learned V(s) adds gamma^H V(s_H)
+(and V at a truncation) differentiably: the value beyond the horizon, trained on TD(lambda) targets of the rollouts.
+
+The node is discrete; ``Simulator.move`` takes an integer node, so no gradient reaches the node choice through the
+simulator. ``node`` says how it is chosen and learned:
+
+- ``score``: sampled from the policy's categorical over the N nodes; its logits learn from a score-function term
+  -log pi(k_t | s_t) A_t (REINFORCE; A_t: GAE(lambda) on the env's rewards with the critic as baseline, or, without
+  a critic, the discounted return within the window minus its batch mean), normalized, plus an entropy bonus. The
+  drag of the chosen node gets the pathwise gradient. Evaluation: the argmax node.
+- ``greedy``: the node farthest from its place in the centroid-aligned target (``diffdlo.task.greedy_drags``, the
+  greedy planner's choice); only the drag is learned, pathwise. A relaxation by a fixed rule: nothing is learned
+  about the node.
+
+The actor is SAC tuned's ``HybridActor`` (agents/sac.py: relative features, running normalization, an MLP, per-node
+logits and tanh drags), acting with its mean drag (``drag_noise: false``; ``true``: reparameterized Gaussian noise).
+Gradient norms (pathwise, score-function, total before clipping; the critic's) are logged in train.csv every update;
+clipping happens only with ``max_grad_norm`` > 0, and each update logs whether it clipped. A non-finite gradient
+raises FloatingPointError (never zeroed). Env steps count every rope-move simulated in training (B x H per update);
+``sim_backward`` counts the rope-moves backpropagated.
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn as nn
+
+from agents import hybrid
+from agents.cli import run_cli
+from agents.config import (InputOptions, RunOptions, TaskOptions, check_layer_sizes, check_ranges, check_types,
+                           part)
+from agents.hybrid import FEATURE_OBS
+from agents.networks import Features, mlp
+from agents.run import Run, learner
+from agents.sac import HybridActor
+from diffdlo.rewards import reward as move_reward, shape_error
+from diffdlo.task import decode_node_action, greedy_drags
+
+NODE_RULES = ("score", "greedy")
+OBJECTIVES = ("reward", "log_error")
+ACTORS = ("shared", "sac")
+
+
+# ====================================================================== config (defaults: params/apg.yaml)
+@dataclasses.dataclass
+class APGConfig:
+    task: TaskOptions = part(TaskOptions)
+    run: RunOptions = part(RunOptions, total_steps=5000, eval_every=1000, checkpoint_every=1000, log_every=1)
+    inputs: InputOptions = part(InputOptions)
+    # checkpoints and evaluations are checked after each update; log_every counts updates
+    horizon: int = 4                      # H: moves chained in one differentiable rollout
+    node: str = "score"                   # "score" | "greedy" (see the module's docstring)
+    critic: bool = False                  # SHAC: learned V(s) beyond the horizon (and as the node's baseline)
+    objective: str = "reward"             # "reward": the env's reward; "log_error": log e_t - log e_{t+1} per move
+    lr: float = 1e-3                      # actor's Adam
+    anneal_lr: bool = False               # the actor's lr decays linearly to 0 over total_steps (PPO's anneal_lr)
+    critic_lr: float = 1e-3
+    critic_epochs: int = 4                # full-batch critic steps per update, on the rollout's TD(lambda) targets
+    gamma: float = 0.97
+    gae_lambda: float = 0.95
+    node_coef: float = 1.0                # weight of the score-function term (node "score")
+    ent_coef: float = 0.01                # node entropy bonus (node "score")
+    max_grad_norm: float = 0.0            # > 0: clip the actor's gradient norm to it (logged); 0: never clip
+    actor: str = "shared"                 # "shared": one head for every node; "sac": SAC tuned's HybridActor
+    hidden: list = dataclasses.field(default_factory=lambda: [256, 256])
+    head_hidden: int = 64                 # actor "shared": width of the per-node head
+    log_std_min: float = -5.0             # actor "sac": its log-std bounds (unused: APG acts with the mean drag)
+    log_std_max: float = 2.0
+
+    def check(self) -> None:
+        self.task.check()
+        self.run.check()
+        self.inputs.check(self.task)
+        check_types(self)
+        check_layer_sizes("hidden", self.hidden)
+        check_ranges(self, {"horizon": "[1, inf)", "lr": "(0, inf)", "critic_lr": "(0, inf)",
+                            "critic_epochs": "[1, inf)", "gamma": "[0, 1]", "gae_lambda": "[0, 1]",
+                            "node_coef": "[0, inf)", "ent_coef": "[0, inf)", "max_grad_norm": "[0, inf)",
+                            "head_hidden": "[1, inf)",
+                            "log_std_min": "(-inf, inf)", "log_std_max": "(-inf, inf)"})
+        if self.node not in NODE_RULES:
+            raise ValueError(f"unknown node {self.node!r}: use one of {list(NODE_RULES)}")
+        if self.actor not in ACTORS:
+            raise ValueError(f"unknown actor {self.actor!r}: use one of {list(ACTORS)}")
+        if self.actor == "shared" and self.inputs.features != "relative":
+            raise ValueError("actor 'shared' reads each node's own relative features: it needs features 'relative'")
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"unknown objective {self.objective!r}: use one of {list(OBJECTIVES)}")
+        if self.task.action != "node":
+            raise ValueError(f"apg chooses a node and backpropagates through its drag: it needs action 'node', got "
+                             f"{self.task.action!r}")
+        if self.task.obs not in FEATURE_OBS:
+            raise ValueError(f"apg builds its observation from the rope's positions (differentiably): it needs obs "
+                             f"{list(FEATURE_OBS)}, got {self.task.obs!r}")
+        if not self.log_std_min < self.log_std_max:
+            raise ValueError(f"log_std_min must be below log_std_max, got {self.log_std_min} and {self.log_std_max}")
+
+
+# ====================================================================== networks
+def graph_obs(obs_type: str, pos: torch.Tensor, target: torch.Tensor) -> Any:
+    """The observation of ropes ``pos`` (B, N, 2) as ``diffdlo.task.observe`` gives it, but keeping pos's graph."""
+    if obs_type == "points":
+        return {"node_poses": pos.float(), "target_poses": target.detach().float()}
+    return (pos - target.detach()).float()
+
+
+def greedy_node(obs: Any) -> torch.Tensor:
+    """(B,) the node farthest from its place in the centroid-aligned target (``diffdlo.task.greedy_drags``)."""
+    pos, target = (obs["node_poses"], obs["target_poses"]) if isinstance(obs, dict) else (obs, torch.zeros_like(obs))
+    return greedy_drags(pos.detach(), target.detach(), 1.0)[1].argmax(-1)
+
+
+class SharedHead(nn.Module):
+    """The hybrid head with ONE set of weights for every node: SAC tuned's trunk (relative features, running norm,
+    MLP) gives z; node k's logit and drag come from a small MLP on [z, node k's own normalized features (its
+    centred offset from the target and its centred position), a learned embedding of k]. Every move trains the head
+    of the node it grasped, which is every node's head; HybridActor's separate per-node outputs learn a node's drag
+    only from the moves that grasped that node (1/N of them)."""
+
+    def __init__(self, obs_example: Any, cfg: APGConfig, length: float, n_nodes: int):
+        super().__init__()
+        self.feat, self.n = Features(obs_example, cfg.inputs, length), n_nodes
+        self.trunk = mlp(self.feat.out_dim, cfg.hidden, None)
+        last = cfg.hidden[-1] if cfg.hidden else self.feat.out_dim
+        self.local = 4 if isinstance(obs_example, dict) else 2
+        self.embed = nn.Embedding(n_nodes, 16)
+        self.head = mlp(last + self.local + 16, [cfg.head_hidden], 3)
+
+    def forward(self, obs: Any, deterministic: bool = True) -> tuple[torch.Tensor, torch.Tensor, None]:
+        x = self.feat(obs)
+        b, n = x.shape[0], self.n
+        own = x[:, :self.local * n].view(b, self.local // 2, n, 2).transpose(1, 2).reshape(b, n, self.local)
+        z = self.trunk(x).unsqueeze(1).expand(b, n, -1)
+        out = self.head(torch.cat([z, own, self.embed.weight.expand(b, n, -1)], -1))
+        return torch.log_softmax(out[..., 0], -1), torch.tanh(out[..., 1:]), None
+
+
+class Actor(nn.Module):
+    """A hybrid head (``SharedHead`` or SAC tuned's ``HybridActor``) and the node rule: ``dist(obs)`` ->
+    (log pi(k|s) (B, N), drags (B, N, 2) in (-1, 1)), the mean drags (APG needs no drag noise: its gradient is
+    exact)."""
+
+    def __init__(self, obs_example: Any, cfg: APGConfig, length: float, n_nodes: int):
+        super().__init__()
+        head = SharedHead if cfg.actor == "shared" else HybridActor
+        self.net, self.rule, self.n = head(obs_example, cfg, length, n_nodes), cfg.node, n_nodes
+
+    def dist(self, obs: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        log_pk, drags, _ = self.net(obs, True)
+        return log_pk, drags
+
+    def choose(self, obs: Any, log_pk: torch.Tensor, deterministic: bool) -> torch.Tensor:
+        if self.rule == "greedy":
+            return greedy_node(obs)
+        return log_pk.argmax(-1) if deterministic else torch.distributions.Categorical(logits=log_pk).sample()
+
+    def env_action(self, obs: Any, deterministic: bool = True) -> torch.Tensor:
+        """The env's node action (B, 3): the chosen node and its drag (the mean drag when deterministic)."""
+        log_pk, drags = self.dist(obs)
+        node = self.choose(obs, log_pk, deterministic)
+        return hybrid.to_env_action(node, drags[torch.arange(len(node), device=node.device), node], self.n)
+
+
+class Critic(nn.Module):
+    """V(s): the actor's input features (their normalizer follows the actor's) and an MLP."""
+
+    def __init__(self, obs_example: Any, cfg: APGConfig, length: float):
+        super().__init__()
+        self.feat = Features(obs_example, cfg.inputs, length)
+        self.v = mlp(self.feat.out_dim, cfg.hidden, 1)
+
+    def forward(self, obs: Any) -> torch.Tensor:
+        return self.v(self.feat(obs)).squeeze(-1)
+
+
+def grad_norm(params: list[torch.Tensor]) -> float:
+    grads = [p.grad for p in params if p.grad is not None]
+    return float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))) if grads else 0.0
+
+
+def advantages(rewards: torch.Tensor, values: torch.Tensor, next_values: torch.Tensor, done: torch.Tensor,
+               gamma: float, lam: float) -> torch.Tensor:
+    """GAE(lambda) over a window (H, B): ``next_values`` V(s_{t+1}) already 0 after a termination and V(final
+    observation) after a truncation; ``done`` cuts the sum at an episode end."""
+    adv, last = torch.zeros_like(rewards), torch.zeros_like(rewards[0])
+    for t in reversed(range(len(rewards))):
+        delta = rewards[t] + gamma * next_values[t] - values[t]
+        last = delta + gamma * lam * (~done[t]).float() * last
+        adv[t] = last
+    return adv
+
+
+# ====================================================================== training loop
+@learner
+def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool = True) -> dict[str, Any]:
+    run = Run("apg", cfg, out, resume, progress)
+    env, device, p, num_envs = run.env, run.device, run.params, cfg.run.num_envs
+    sim, obs_type, reward_kind = env.core.sim, cfg.task.obs, cfg.task.reward
+    actor = Actor(run.obs, cfg, p.length, p.n_nodes).to(device)
+    actor_opt = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
+    parts: dict[str, Any] = dict(actor=actor, actor_opt=actor_opt)
+    critic = Critic(run.obs, cfg, p.length).to(device) if cfg.critic else None
+    if critic is not None:
+        parts.update(critic=critic, critic_opt=torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr))
+    ck = run.start(**parts)
+    counts = dict(ck["counts"]) if ck else {"n_updates": 0, "sim_backward": 0, "clipped": 0}
+    actor_params = list(actor.parameters())
+    value = critic if critic is not None else (lambda o: torch.zeros(len(o if torch.is_tensor(o) else o["node_poses"]),
+                                                                     device=device))
+
+    def policy(o: Any, deterministic: bool) -> torch.Tensor:
+        return actor.env_action(o, deterministic)
+
+    def rollout(h: int) -> dict[str, Any]:
+        """h moves of every training rope with the graph kept; the env steps along (same moves, its bookkeeping)."""
+        state = env.core.get_state(generators=False)
+        pos, target = state.pos, state.target
+        disc = torch.ones(num_envs, device=device)
+        J = torch.zeros(num_envs, device=device)
+        rec: dict[str, list] = {k: [] for k in ("obs", "log_prob", "entropy", "reward", "done", "value", "next_value")}
+        for _ in range(h):
+            o = env.to_learner(graph_obs(obs_type, pos, target))
+            with torch.no_grad():
+                if actor.net.feat.norm is not None:
+                    actor.net.feat(o, update_norm=True)
+                    if critic is not None:
+                        critic.feat.norm.load_state_dict(actor.net.feat.norm.state_dict())
+            log_pk, drags = actor.dist(o)
+            node = actor.choose(o, log_pk, deterministic=False)
+            rows = torch.arange(num_envs, device=device)
+            action = hybrid.to_env_action(node, drags[rows, node], p.n_nodes)
+            k, delta = decode_node_action(action.to(sim.device, sim.dtype), p)       # the env's own arithmetic
+            new = sim.move(pos, k, delta)
+            r = (move_reward(reward_kind, pos, new, target) if cfg.objective == "reward"          # differentiable
+                 else shape_error(pos, target).log() - shape_error(new, target).log()).to(device)
+            _, r_env, term, trunc, info, final_obs = env.step(action.detach())
+            run.count(info, term, trunc, update_bar=True)
+            done = term | trunc
+            J = J + disc * r
+            with torch.no_grad():
+                v_final = torch.where(term, 0.0, value(final_obs))
+                rec["value"].append(value(env.to_learner(graph_obs(obs_type, pos.detach(), target))))
+            if critic is not None:                   # truncated: the value of its true final state, through it
+                cut = (trunc & ~term).float()
+                J = J + disc * cfg.gamma * cut * critic(env.to_learner(graph_obs(obs_type, new, target)))
+            disc = torch.where(done, 1.0, disc * cfg.gamma)
+            rec["obs"].append(o.detach() if torch.is_tensor(o) else {kk: v.detach() for kk, v in o.items()})
+            rec["log_prob"].append(log_pk[rows, node])
+            rec["entropy"].append(-(log_pk.exp() * log_pk).sum(-1))
+            rec["reward"].append(r_env.float())
+            rec["done"].append(done)
+            rec["next_value"].append(v_final)                                        # fixed below where not done
+            now = env.core.get_state(generators=False)                               # the reset ropes' new starts
+            pos, target = torch.where(done.to(sim.device).view(-1, 1, 1), now.pos, new), now.target
+        o_last = env.to_learner(graph_obs(obs_type, pos, target))
+        if critic is not None:
+            J = J + disc * critic(o_last)
+        with torch.no_grad():
+            rec["next_value"] = [torch.where(rec["done"][t], rec["next_value"][t],
+                                             rec["value"][t + 1] if t + 1 < h else value(o_last)) for t in range(h)]
+        out = {k: torch.stack(v) for k, v in rec.items() if k != "obs"}
+        out["obs"], out["J"] = rec["obs"], J
+        return out
+
+    while run.step < cfg.run.total_steps:
+        h = min(cfg.horizon, -(-(cfg.run.total_steps - run.step) // num_envs))
+        if cfg.anneal_lr:
+            for group in actor_opt.param_groups:
+                group["lr"] = cfg.lr * max(0.0, 1.0 - run.step / cfg.run.total_steps)
+        ro = rollout(h)
+        # ---- actor: pathwise -J, plus the node's score-function term
+        path_loss = -ro["J"].mean() / h
+        adv = advantages(ro["reward"], ro["value"], ro["next_value"], ro["done"], cfg.gamma,
+                         cfg.gae_lambda if critic is not None else 1.0)
+        if critic is None:
+            adv = adv - adv.mean(1, keepdim=True)                                    # a batch-mean baseline per t
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8) if adv.numel() > 1 else adv
+        node_loss = -(ro["log_prob"] * adv.detach()).mean() * cfg.node_coef - cfg.ent_coef * ro["entropy"].mean()
+        actor_opt.zero_grad()
+        node_grads = None
+        if cfg.node == "score":
+            node_grads = torch.autograd.grad(node_loss, actor_params, retain_graph=True, allow_unused=True)
+        path_loss.backward()
+        counts["sim_backward"] += h * num_envs
+        g_path = grad_norm(actor_params)
+        g_node = 0.0
+        if node_grads is not None:
+            g_node = float(torch.linalg.vector_norm(torch.stack([g.norm() for g in node_grads if g is not None])))
+            for prm, g in zip(actor_params, node_grads):
+                if g is not None:
+                    prm.grad = g if prm.grad is None else prm.grad + g
+        g_total = grad_norm(actor_params)
+        if not all(torch.isfinite(prm.grad).all() for prm in actor_params if prm.grad is not None):
+            raise FloatingPointError(f"apg: non-finite actor gradient at update {counts['n_updates']} (pathwise norm "
+                                     f"{g_path}, score-function norm {g_node})")
+        clipped = cfg.max_grad_norm > 0 and g_total > cfg.max_grad_norm
+        if cfg.max_grad_norm > 0:
+            nn.utils.clip_grad_norm_(actor_params, cfg.max_grad_norm)
+        actor_opt.step()
+        counts["clipped"] += int(clipped)
+        counts["n_updates"] += 1
+        # ---- critic: TD(lambda) targets of this rollout
+        critic_loss, g_critic = float("nan"), float("nan")
+        if critic is not None:
+            returns = advantages(ro["reward"], ro["value"], ro["next_value"], ro["done"], cfg.gamma,
+                                 cfg.gae_lambda) + ro["value"]
+            obs_all = (torch.cat(ro["obs"]) if torch.is_tensor(ro["obs"][0])
+                       else {kk: torch.cat([o[kk] for o in ro["obs"]]) for kk in ro["obs"][0]})
+            for _ in range(cfg.critic_epochs):
+                loss_c = ((critic(obs_all) - returns.flatten()) ** 2).mean()
+                parts["critic_opt"].zero_grad()
+                loss_c.backward()
+                g_critic = grad_norm(list(critic.parameters()))
+                parts["critic_opt"].step()
+            critic_loss = float(loss_c)
+        if counts["n_updates"] % cfg.run.log_every == 0:
+            run.logger.log("train", run.step, {
+                "objective": ro["J"].mean().item(), "actor_loss": path_loss.item(), "node_loss": node_loss.item(),
+                "entropy": ro["entropy"].mean().item(), "grad_norm_path": g_path, "grad_norm_node": g_node,
+                "grad_norm": g_total, "clipped": float(clipped), "max_grad_norm": cfg.max_grad_norm,
+                "critic_loss": critic_loss, "grad_norm_critic": g_critic, "horizon": h,
+                "lr": actor_opt.param_groups[0]["lr"], **counts})
+            run.log_rollout()
+        run.evaluate_if_due(lambda: run.evaluate(policy))
+        run.checkpoint_if_due(lambda: {**parts, "counts": dict(counts)})
+    return run.finish(policy, extra=dict(counts, horizon=cfg.horizon, node=cfg.node, critic=cfg.critic))
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_cli(APGConfig, "apg", __doc__, train, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
