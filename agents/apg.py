@@ -53,7 +53,6 @@ from diffdlo.task import decode_node_action, greedy_drags
 
 NODE_RULES = ("score", "greedy")
 OBJECTIVES = ("reward", "log_error")
-ACTORS = ("shared", "sac")
 
 
 # ====================================================================== config (defaults: params/apg.yaml)
@@ -76,10 +75,8 @@ class APGConfig:
     node_coef: float = 1.0                # weight of the score-function term (node "score")
     ent_coef: float = 0.01                # node entropy bonus (node "score")
     max_grad_norm: float = 0.0            # > 0: clip the actor's gradient norm to it (logged); 0: never clip
-    actor: str = "shared"                 # "shared": one head for every node; "sac": SAC tuned's HybridActor
     hidden: list = dataclasses.field(default_factory=lambda: [256, 256])
-    head_hidden: int = 64                 # actor "shared": width of the per-node head
-    log_std_min: float = -5.0             # actor "sac": its log-std bounds (unused: APG acts with the mean drag)
+    log_std_min: float = -5.0             # HybridActor's log-std bounds (unused: APG acts with the mean drag)
     log_std_max: float = 2.0
 
     def check(self) -> None:
@@ -91,14 +88,9 @@ class APGConfig:
         check_ranges(self, {"horizon": "[1, inf)", "lr": "(0, inf)", "critic_lr": "(0, inf)",
                             "critic_epochs": "[1, inf)", "gamma": "[0, 1]", "gae_lambda": "[0, 1]",
                             "node_coef": "[0, inf)", "ent_coef": "[0, inf)", "max_grad_norm": "[0, inf)",
-                            "head_hidden": "[1, inf)",
                             "log_std_min": "(-inf, inf)", "log_std_max": "(-inf, inf)"})
         if self.node not in NODE_RULES:
             raise ValueError(f"unknown node {self.node!r}: use one of {list(NODE_RULES)}")
-        if self.actor not in ACTORS:
-            raise ValueError(f"unknown actor {self.actor!r}: use one of {list(ACTORS)}")
-        if self.actor == "shared" and self.inputs.features != "relative":
-            raise ValueError("actor 'shared' reads each node's own relative features: it needs features 'relative'")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"unknown objective {self.objective!r}: use one of {list(OBJECTIVES)}")
         if self.task.action != "node":
@@ -125,40 +117,14 @@ def greedy_node(obs: Any) -> torch.Tensor:
     return greedy_drags(pos.detach(), target.detach(), 1.0)[1].argmax(-1)
 
 
-class SharedHead(nn.Module):
-    """The hybrid head with ONE set of weights for every node: SAC tuned's trunk (relative features, running norm,
-    MLP) gives z; node k's logit and drag come from a small MLP on [z, node k's own normalized features (its
-    centred offset from the target and its centred position), a learned embedding of k]. Every move trains the head
-    of the node it grasped, which is every node's head; HybridActor's separate per-node outputs learn a node's drag
-    only from the moves that grasped that node (1/N of them)."""
-
-    def __init__(self, obs_example: Any, cfg: APGConfig, length: float, n_nodes: int):
-        super().__init__()
-        self.feat, self.n = Features(obs_example, cfg.inputs, length), n_nodes
-        self.trunk = mlp(self.feat.out_dim, cfg.hidden, None)
-        last = cfg.hidden[-1] if cfg.hidden else self.feat.out_dim
-        self.local = 4 if isinstance(obs_example, dict) else 2
-        self.embed = nn.Embedding(n_nodes, 16)
-        self.head = mlp(last + self.local + 16, [cfg.head_hidden], 3)
-
-    def forward(self, obs: Any, deterministic: bool = True) -> tuple[torch.Tensor, torch.Tensor, None]:
-        x = self.feat(obs)
-        b, n = x.shape[0], self.n
-        own = x[:, :self.local * n].view(b, self.local // 2, n, 2).transpose(1, 2).reshape(b, n, self.local)
-        z = self.trunk(x).unsqueeze(1).expand(b, n, -1)
-        out = self.head(torch.cat([z, own, self.embed.weight.expand(b, n, -1)], -1))
-        return torch.log_softmax(out[..., 0], -1), torch.tanh(out[..., 1:]), None
-
-
 class Actor(nn.Module):
-    """A hybrid head (``SharedHead`` or SAC tuned's ``HybridActor``) and the node rule: ``dist(obs)`` ->
-    (log pi(k|s) (B, N), drags (B, N, 2) in (-1, 1)), the mean drags (APG needs no drag noise: its gradient is
-    exact)."""
+    """SAC tuned's ``HybridActor`` and the node rule: ``dist(obs)`` -> (log pi(k|s) (B, N), the mean drags (B, N, 2)
+    in (-1, 1)). APG needs no drag noise: its gradient is exact, and without noise the policy trained is the policy
+    evaluated."""
 
     def __init__(self, obs_example: Any, cfg: APGConfig, length: float, n_nodes: int):
         super().__init__()
-        head = SharedHead if cfg.actor == "shared" else HybridActor
-        self.net, self.rule, self.n = head(obs_example, cfg, length, n_nodes), cfg.node, n_nodes
+        self.net, self.rule, self.n = HybridActor(obs_example, cfg, length, n_nodes), cfg.node, n_nodes
 
     def dist(self, obs: Any) -> tuple[torch.Tensor, torch.Tensor]:
         log_pk, drags, _ = self.net(obs, True)

@@ -2,6 +2,7 @@
 
     python -m benchmarks.mismatch --target random --seeds 0 1 2 3 4 --episodes 20 --out runs/mismatch
     python -m benchmarks.mismatch --seeds 0 --episodes 2 --model-scale k_d=1.2 --out runs/mismatch-try
+    python -m benchmarks.mismatch --calibrate --target random --seeds 0 1 2 3 4 --episodes 20 --out runs/mismatch
 
 Conditions, for each method (CEM and the gradient planner, their own code in-process: planners.common.build_run
 and run_episode):
@@ -10,8 +11,11 @@ and run_episode):
 - mismatched: the model is nominal; the real rope has k_s, k_b, k_d and mass each scaled by a factor drawn per seed,
   log-uniform in [1 - spread, 1 + spread] ([0.7, 1.3] by default), from a generator seeded with the seed (printed
   and recorded);
-- calibrated (only with --model-params or --model-scale): the same real ropes as mismatched, planned on the given
-  model (--model-params, default the nominal, times --model-scale): a stand-in for calibrated parameters.
+- calibrated (with --calibrate): the same real ropes as mismatched, planned on the nominal params with k_s and k_b
+  fitted by diffdlo.calibrate (Levenberg-Marquardt, start shapes fitted) to --calibration-moves random moves of
+  that seed's real rope, recorded with --calibration-noise position noise;
+- given (only with --model-params or --model-scale): the same real ropes, planned on the given model
+  (--model-params, default the nominal, times --model-scale).
 
 Episode i of seed s starts from env.reset(seed=1000 s + i) (same starts and targets in every condition, up to the
 real rope's settling of the start shape). Writes <out>/results.json and <out>/mismatch.md (method, condition,
@@ -52,6 +56,30 @@ def real_factors(seed: int, spread: float) -> dict[str, float]:
     return {k: math.exp(lo + float(x) * (hi - lo)) for k, x in zip(PHYSICAL, u)}
 
 
+def calibrated_model(nominal, factors: dict[str, float], seed: int, moves: int, noise: float) -> dict:
+    """The nominal params with k_s and k_b fitted to ``moves`` recorded moves of the rope nominal x factors
+    (diffdlo.calibrate's default fit: k_d and mass held, start shapes fitted). What planning needs are the
+    trajectories, which depend on the ratios to k_d, so the fitted model matches the real rope's ratios."""
+    import dataclasses
+
+    from diffdlo import Simulator
+    from diffdlo.calibrate import fit_gauss_newton, moves_from_recording
+    from diffdlo.record import make_recording
+
+    rec = make_recording(nominal, moves, seed, noise=noise, scale=factors)
+    sim = Simulator(nominal, dtype=torch.float64)
+    t0 = time.perf_counter()
+    result = fit_gauss_newton(sim, moves_from_recording(rec, nominal.dt))
+    fit_s = time.perf_counter() - t0
+    params = dataclasses.replace(nominal, **result.values)
+    real = scaled_params(nominal, factors)
+    ratio = lambda p, a, b: getattr(p, a) / getattr(p, b)
+    ratios = {"k_s/k_d": ("k_s", "k_d"), "k_b/k_d": ("k_b", "k_d")}
+    return {"params": params, "fitted": result.values, "fit_s": fit_s, "rms_m": result.rms,
+            "left_out": sorted(result.left_out), "ratios": {k: ratio(params, *v) for k, v in ratios.items()},
+            "rel_error": {k: ratio(params, *v) / ratio(real, *v) - 1 for k, v in ratios.items()}}
+
+
 def make_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.mismatch", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -64,9 +92,14 @@ def make_parser() -> argparse.ArgumentParser:
     ap.add_argument("--params", default="cable", help="the nominal params: name or YAML path (default cable)")
     ap.add_argument("--spread", type=float, default=0.3, help="the real rope's factors lie in [1 - spread, "
                                                               "1 + spread] (default 0.3)")
-    ap.add_argument("--model-params", default=None, help="the calibrated condition's model (name or YAML path)")
+    ap.add_argument("--calibrate", action="store_true",
+                    help="add the calibrated condition: each seed's model fitted to recorded moves of its real rope")
+    ap.add_argument("--calibration-moves", type=int, default=20, help="recorded moves per seed (default 20)")
+    ap.add_argument("--calibration-noise", type=float, default=0.001,
+                    help="position noise of those recordings [m] (default 0.001)")
+    ap.add_argument("--model-params", default=None, help="the given condition's model (name or YAML path)")
     ap.add_argument("--model-scale", action="append", default=None, metavar="KEY=FACTOR",
-                    help=f"multiply the calibrated model's {', '.join(PHYSICAL)} by FACTOR (repeatable)")
+                    help=f"multiply the given model's {', '.join(PHYSICAL)} by FACTOR (repeatable)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="runs/mismatch")
     ap.add_argument("--overwrite", action="store_true", help="replace an earlier benchmark in --out")
@@ -135,6 +168,10 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--max-steps must be at least 1, got {args.max_steps}")
         if not 0 < args.spread < 1:
             raise ValueError(f"--spread must be in (0, 1), got {args.spread}")
+        if args.calibration_moves < 1:
+            raise ValueError(f"--calibration-moves must be at least 1, got {args.calibration_moves}")
+        if not (math.isfinite(args.calibration_noise) and args.calibration_noise >= 0):
+            raise ValueError(f"--calibration-noise must be >= 0, got {args.calibration_noise}")
         budgets = {m: {k: getattr(args, f"{m}_{k}") for k in METHODS[m].OPTIONS} for m in args.methods}
         for m in args.methods:
             check_planner_options(METHODS[m], budgets[m], prefix=f"--{m}-")
@@ -164,8 +201,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"seed {s}: real rope = nominal x " + ", ".join(f"{k} {f:.3f}" for k, f in
                                                               real_factors(s, args.spread).items()), flush=True)
     conditions = {"matched": lambda s: (nominal, nominal), "mismatched": lambda s: (nominal, reals[s])}
+    fits = {}
+    if args.calibrate:
+        for s in args.seeds:
+            fits[s] = calibrated_model(nominal, real_factors(s, args.spread), s, args.calibration_moves,
+                                       args.calibration_noise)
+            print(f"seed {s}: calibrated in {fits[s]['fit_s']:.1f} s from {args.calibration_moves} moves: " + ", ".join(
+                f"{k} {100 * e:+.2f} %" for k, e in fits[s]["rel_error"].items()), flush=True)
+        conditions["calibrated"] = lambda s: (fits[s]["params"], reals[s])
     if calibrated is not None:
-        conditions["calibrated"] = lambda s: (calibrated, reals[s])
+        conditions["given"] = lambda s: (calibrated, reals[s])
 
     rows, t0 = [], time.perf_counter()
     total = len(args.methods) * len(conditions) * len(args.seeds) * args.episodes
@@ -200,7 +245,11 @@ def main(argv: list[str] | None = None) -> int:
                 "max_steps": args.max_steps, "success_tol": nominal.success_tol, "spread": args.spread,
                 "nominal_params": physical_values(nominal),
                 "real_factors": {str(s): real_factors(s, args.spread) for s in args.seeds},
-                "calibrated_params": None if calibrated is None else physical_values(calibrated),
+                "given_params": None if calibrated is None else physical_values(calibrated),
+                "calibration": {str(s): {k: v for k, v in f.items() if k != "params"} for s, f in fits.items()}
+                or None,
+                "calibration_moves": args.calibration_moves if args.calibrate else None,
+                "calibration_noise": args.calibration_noise if args.calibrate else None,
                 "budgets": budgets, "wall_s": time.perf_counter() - t0, "rows": rows})
             write_text_atomic(out / "mismatch.md", table)
             plot_rows(rows, out / "mismatch.png")

@@ -24,7 +24,7 @@ def backend_line() -> str:
         reason = kernel.unavailable_reason()
     if reason is None:
         return (f"fused C++ kernel ({kernel.lanes()} ropes per lane group; library {kernel.library_path()}); "
-                f"the PID controller, frame recording and non-CPU devices use the eager torch path")
+                f"the PID controller and non-CPU devices use the eager torch path")
     return (f"eager torch path, about 100-500x slower per move: the fused C++ kernel is unavailable ({reason}); "
             f"install g++ (or clang++) or set $CXX, then rerun")
 

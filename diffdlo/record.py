@@ -40,13 +40,13 @@ def frame_substeps(total: int, record_every: int) -> list[int]:
 
 def simulate(params: CableParams, n_moves: int, seed: int = 0, record_every: int = 50,
              meta: dict | None = None) -> Recording:
-    """A noiseless recording of ``n_moves`` random moves of a settled random rope (float64, the torch path, which
-    is the one that records frames). Each move's start frame is the previous move's end frame."""
+    """A noiseless recording of ``n_moves`` random moves of a settled random rope (float64). Each move's start
+    frame is the previous move's end frame."""
     if not isinstance(n_moves, int) or n_moves < 1:
         raise ValueError(f"n_moves must be an integer >= 1, got {n_moves!r}")
     if not isinstance(record_every, int) or record_every < 1:
         raise ValueError(f"record_every must be an integer >= 1, got {record_every!r}")
-    sim = Simulator(params, dtype=torch.float64, backend="torch")
+    sim = Simulator(params, dtype=torch.float64)
     generator = torch.Generator().manual_seed(seed)
     pos = sim.settle(sim.random_shape(1, generator))
     frames, substeps = [pos[0]], [0]

@@ -137,7 +137,7 @@ def test_kernel_reports_divergence(params, batch, bad):
 
 def test_backend_selection_and_fallback(params, monkeypatch):
     assert diffdlo.Simulator(params).uses_kernel()
-    assert not diffdlo.Simulator(params).uses_kernel(record_every=10)          # frames: torch path
+    assert diffdlo.Simulator(params).uses_kernel(record_every=10)              # frames run in the kernel too
     assert not diffdlo.Simulator(dataclasses.replace(params, controller="pid")).uses_kernel()
     with pytest.raises(ValueError, match="kinematic controller only"):
         diffdlo.Simulator(dataclasses.replace(params, controller="pid"), backend="kernel")

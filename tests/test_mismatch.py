@@ -91,7 +91,7 @@ def test_mismatch_benchmark_tiny_run_writes_its_table(tmp_path, capsys):
     out = tmp_path / "bench"
     argv = ["--target", "diagonal", "--seeds", "0", "--episodes", "1", "--max-steps", "2", "--cem-candidates", "8",
             "--cem-elites", "2", "--cem-iterations", "1", "--gradient-iters", "1", "--model-scale", "k_d=1.1",
-            "--out", str(out), "--quiet"]
+            "--calibrate", "--calibration-moves", "4", "--out", str(out), "--quiet"]
     assert mismatch.main(argv) == 0
     printed = capsys.readouterr().out
     factors = mismatch.real_factors(0, 0.3)
@@ -100,7 +100,7 @@ def test_mismatch_benchmark_tiny_run_writes_its_table(tmp_path, capsys):
     table = (out / "mismatch.md").read_text()
     assert (out / "mismatch.png").stat().st_size > 0                        # the picture beside the table
     for method in ("cem", "gradient"):
-        for condition in ("matched", "mismatched", "calibrated"):
+        for condition in ("matched", "mismatched", "calibrated", "given"):
             assert f"| {method} | {condition} |" in table
     res = json.loads((out / "results.json").read_text())
     rows = {(r["method"], r["condition"]): r for r in res["rows"]}
@@ -108,7 +108,13 @@ def test_mismatch_benchmark_tiny_run_writes_its_table(tmp_path, capsys):
     mis = rows["cem", "mismatched"]["per_seed"][0]
     assert mis["model_params"] == physical_values(nominal)
     assert mis["real_params"] == pytest.approx({k: getattr(nominal, k) * factors[k] for k in PHYSICAL})
-    assert rows["gradient", "calibrated"]["per_seed"][0]["model_params"]["k_d"] == pytest.approx(nominal.k_d * 1.1)
+    assert rows["gradient", "given"]["per_seed"][0]["model_params"]["k_d"] == pytest.approx(nominal.k_d * 1.1)
+    fitted = rows["cem", "calibrated"]["per_seed"][0]["model_params"]      # fitted to 4 moves of the real rope
+    real = mis["real_params"]
+    for a in ("k_s", "k_b"):
+        assert fitted[a] / fitted["k_d"] == pytest.approx(real[a] / real["k_d"], rel=0.03), a
+    assert abs(fitted["k_s"] / fitted["k_d"] / (nominal.k_s / nominal.k_d) - factors["k_s"] / factors["k_d"]) < 0.03
+    assert set(res["calibration"]["0"]["rel_error"]) == {"k_s/k_d", "k_b/k_d"}
 
     assert mismatch.main(argv) == 2                                 # never over an earlier benchmark
     assert "--overwrite" in capsys.readouterr().err
