@@ -24,7 +24,9 @@ simulator. ``node`` says how it is chosen and learned:
   about the node.
 
 The actor is SAC tuned's ``HybridActor`` (agents/sac.py: relative features, running normalization, an MLP, per-node
-logits and tanh drags), acting with its mean drag (``drag_noise: false``; ``true``: reparameterized Gaussian noise).
+logits and tanh drags), acting with its mean drag: the gradient is exact, so no drag noise is needed to explore, and
+the policy trained is the policy evaluated. The preset "tuned" (params/apg.yaml, where each choice's measurement is
+written) is node ``greedy``, H = 1, no critic, 4 ropes per update and a linearly decaying lr.
 Gradient norms (pathwise, score-function, total before clipping; the critic's) are logged in train.csv every update;
 clipping happens only with ``max_grad_norm`` > 0, and each update logs whether it clipped. A non-finite gradient
 raises FloatingPointError (never zeroed). Env steps count every rope-move simulated in training (B x H per update);
@@ -59,15 +61,16 @@ OBJECTIVES = ("reward", "log_error")
 @dataclasses.dataclass
 class APGConfig:
     task: TaskOptions = part(TaskOptions)
-    run: RunOptions = part(RunOptions, total_steps=5000, eval_every=1000, checkpoint_every=1000, log_every=1)
+    run: RunOptions = part(RunOptions, total_steps=5000, num_envs=4, eval_every=1000, checkpoint_every=1000,
+                           log_every=1)
     inputs: InputOptions = part(InputOptions)
     # checkpoints and evaluations are checked after each update; log_every counts updates
-    horizon: int = 4                      # H: moves chained in one differentiable rollout
-    node: str = "score"                   # "score" | "greedy" (see the module's docstring)
+    horizon: int = 1                      # H: moves chained in one differentiable rollout
+    node: str = "greedy"                  # "greedy" | "score" (see the module's docstring)
     critic: bool = False                  # SHAC: learned V(s) beyond the horizon (and as the node's baseline)
     objective: str = "reward"             # "reward": the env's reward; "log_error": log e_t - log e_{t+1} per move
     lr: float = 1e-3                      # actor's Adam
-    anneal_lr: bool = False               # the actor's lr decays linearly to 0 over total_steps (PPO's anneal_lr)
+    anneal_lr: bool = True                # the actor's lr decays linearly to 0 over total_steps (PPO's anneal_lr)
     critic_lr: float = 1e-3
     critic_epochs: int = 4                # full-batch critic steps per update, on the rollout's TD(lambda) targets
     gamma: float = 0.97
@@ -154,6 +157,28 @@ class Critic(nn.Module):
         return self.v(self.feat(obs)).squeeze(-1)
 
 
+def move_graph(sim, p, pos: torch.Tensor, target: torch.Tensor, node: torch.Tensor, drag: torch.Tensor,
+               reward_kind: str, objective: str = "reward") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One differentiable move of ropes ``pos`` (B, N, 2): node ids (B,) and drags (B, 2) in [-1, 1] become the env's
+    node action and are decoded by the env's own arithmetic (so the rope is the one the env's step gives), then
+    ``sim.move``. Returns (the env action (B, 3), the new ropes, the move's objective (B,): the env's reward, or
+    log e_t - log e_{t+1}), all with the graph from drag and pos."""
+    action = hybrid.to_env_action(node, drag, p.n_nodes)
+    k, delta = decode_node_action(action.to(sim.device, sim.dtype), p)
+    new = sim.move(pos, k, delta)
+    r = (move_reward(reward_kind, pos, new, target) if objective == "reward"
+         else shape_error(pos, target).log() - shape_error(new, target).log())
+    return action, new, r
+
+
+def actor_losses(J: torch.Tensor, log_prob: torch.Tensor, entropy: torch.Tensor, adv: torch.Tensor,
+                 cfg: APGConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pathwise loss -mean J / H and the node's score-function loss (advantages (H, B) normalized, raw in)."""
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8) if adv.numel() > 1 else adv
+    node_loss = -(log_prob * adv.detach()).mean() * cfg.node_coef - cfg.ent_coef * entropy.mean()
+    return -J.mean() / len(log_prob), node_loss
+
+
 def grad_norm(params: list[torch.Tensor]) -> float:
     grads = [p.grad for p in params if p.grad is not None]
     return float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))) if grads else 0.0
@@ -184,7 +209,7 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
     if critic is not None:
         parts.update(critic=critic, critic_opt=torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr))
     ck = run.start(**parts)
-    counts = dict(ck["counts"]) if ck else {"n_updates": 0, "sim_backward": 0, "clipped": 0}
+    counts = dict(ck["counts"]) if ck else {"n_updates": 0, "sim_backward": 0, "clipped_updates": 0}
     actor_params = list(actor.parameters())
     value = critic if critic is not None else (lambda o: torch.zeros(len(o if torch.is_tensor(o) else o["node_poses"]),
                                                                      device=device))
@@ -209,11 +234,8 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
             log_pk, drags = actor.dist(o)
             node = actor.choose(o, log_pk, deterministic=False)
             rows = torch.arange(num_envs, device=device)
-            action = hybrid.to_env_action(node, drags[rows, node], p.n_nodes)
-            k, delta = decode_node_action(action.to(sim.device, sim.dtype), p)       # the env's own arithmetic
-            new = sim.move(pos, k, delta)
-            r = (move_reward(reward_kind, pos, new, target) if cfg.objective == "reward"          # differentiable
-                 else shape_error(pos, target).log() - shape_error(new, target).log()).to(device)
+            action, new, r = move_graph(sim, p, pos, target, node, drags[rows, node], reward_kind, cfg.objective)
+            r = r.to(device)
             _, r_env, term, trunc, info, final_obs = env.step(action.detach())
             run.count(info, term, trunc, update_bar=True)
             done = term | trunc
@@ -234,8 +256,8 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
             now = env.core.get_state(generators=False)                               # the reset ropes' new starts
             pos, target = torch.where(done.to(sim.device).view(-1, 1, 1), now.pos, new), now.target
         o_last = env.to_learner(graph_obs(obs_type, pos, target))
-        if critic is not None:
-            J = J + disc * critic(o_last)
+        if critic is not None:                       # the value beyond the horizon of the ropes still going
+            J = J + disc * (~rec["done"][-1]).float() * critic(o_last)
         with torch.no_grad():
             rec["next_value"] = [torch.where(rec["done"][t], rec["next_value"][t],
                                              rec["value"][t + 1] if t + 1 < h else value(o_last)) for t in range(h)]
@@ -250,15 +272,13 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
                 group["lr"] = cfg.lr * max(0.0, 1.0 - run.step / cfg.run.total_steps)
         ro = rollout(h)
         # ---- actor: pathwise -J, plus the node's score-function term
-        path_loss = -ro["J"].mean() / h
         adv = advantages(ro["reward"], ro["value"], ro["next_value"], ro["done"], cfg.gamma,
                          cfg.gae_lambda if critic is not None else 1.0)
         if critic is None:
             adv = adv - adv.mean(1, keepdim=True)                                    # a batch-mean baseline per t
-        adv = (adv - adv.mean()) / (adv.std() + 1e-8) if adv.numel() > 1 else adv
-        node_loss = -(ro["log_prob"] * adv.detach()).mean() * cfg.node_coef - cfg.ent_coef * ro["entropy"].mean()
+        path_loss, node_loss = actor_losses(ro["J"], ro["log_prob"], ro["entropy"], adv, cfg)
         actor_opt.zero_grad()
-        node_grads = None
+        node_grads = None                            # the score-function gradient, kept apart to log its norm
         if cfg.node == "score":
             node_grads = torch.autograd.grad(node_loss, actor_params, retain_graph=True, allow_unused=True)
         path_loss.backward()
@@ -278,7 +298,7 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
         if cfg.max_grad_norm > 0:
             nn.utils.clip_grad_norm_(actor_params, cfg.max_grad_norm)
         actor_opt.step()
-        counts["clipped"] += int(clipped)
+        counts["clipped_updates"] += int(clipped)
         counts["n_updates"] += 1
         # ---- critic: TD(lambda) targets of this rollout
         critic_loss, g_critic = float("nan"), float("nan")
@@ -293,7 +313,7 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
                 loss_c.backward()
                 g_critic = grad_norm(list(critic.parameters()))
                 parts["critic_opt"].step()
-            critic_loss = float(loss_c)
+            critic_loss = loss_c.item()
         if counts["n_updates"] % cfg.run.log_every == 0:
             run.logger.log("train", run.step, {
                 "objective": ro["J"].mean().item(), "actor_loss": path_loss.item(), "node_loss": node_loss.item(),

@@ -11,7 +11,7 @@ evaluation does.
     env = policy.make_env()                                               # the run's evaluation env (batched)
     result = evaluate(policy.batched(env), env, 20, seed=policy.config.run.eval_seed)
 
-SAC and PPO act from the observation alone: their actions are the network's deterministic ones (SAC: the argmax
+SAC, PPO and APG act from the observation alone (APG: its node rule and mean drag): their actions are the network's deterministic ones (SAC: the argmax
 node and the mean drag, or the squashed Gaussian's mean; PPO: the distribution's mode). PlaNet acts by planning
 through its learned model with CEM, and its planner keeps per-rope state (warm starts, the RSSM's belief) read from
 the env it is bound to: ``batched(env)`` binds a fresh planner to that env, and the one-observation form binds one
@@ -36,7 +36,8 @@ from diffdlo.envs import BatchedShapeControl
 # algo -> (its module, its config class, the checkpoint part holding the acting network's weights)
 LEARNERS = {"sac": ("agents.sac", "SACConfig", "actor"),
             "ppo": ("agents.ppo", "PPOConfig", "agent"),
-            "planet": ("agents.planet", "PlaNetConfig", "model")}
+            "planet": ("agents.planet", "PlaNetConfig", "model"),
+            "apg": ("agents.apg", "APGConfig", "actor")}
 
 BatchedPolicy = Callable[[Any, bool], torch.Tensor]
 
@@ -136,7 +137,21 @@ def planet_model(cfg, ck: dict[str, Any], obs: Any, action_dim: int, path: Path)
     return lambda core: planet.make_planner(model, cfg, core, cfg.run.eval_seed)
 
 
-BUILDERS = {"sac": sac_actor, "ppo": ppo_agent, "planet": planet_model}
+def apg_actor(cfg, ck: dict[str, Any], obs: Any, action_dim: int, path: Path) -> BatchedPolicy:
+    """APG's actor as ``agents.apg.train`` builds it, and its policy (its node rule, the mean drag)."""
+    from agents import apg
+    p = cfg.task.cable_params()
+    actor = apg.Actor(obs, cfg, p.length, p.n_nodes).to(cfg.run.device)
+    load_weights(actor, ck["actor"], path, "actor")
+    actor.eval()
+
+    @torch.no_grad()
+    def policy(o: Any, deterministic: bool = True) -> torch.Tensor:
+        return actor.env_action(o, deterministic)
+    return policy
+
+
+BUILDERS = {"sac": sac_actor, "ppo": ppo_agent, "planet": planet_model, "apg": apg_actor}
 
 
 # ====================================================================== the policy
