@@ -226,3 +226,12 @@ def test_load_policy_acts_as_the_run_evaluated(tmp_path):
     assert [e["final_error"] for e in res["episodes"]] == pytest.approx([e["final_error"] for e in saved])
     obs, _ = __import__("gymnasium").make("DiffDLO/ShapeControl-v0", **pol.env_kwargs()).reset(seed=0)
     assert pol(obs).shape == (3,)
+
+
+def test_the_comparison_grid_runs_apg_tuned_and_its_ablations(tmp_path):
+    from benchmarks import compare
+    cells = compare.build_cells(compare.load_grid(), tmp_path, methods=["apg"], targets=["random"], seeds=[0])
+    by = {c["variant"]: c["argv"] for c in cells}
+    assert set(by) == {"tuned", "h4", "h4_critic", "score"}
+    assert all(a[:2] == ["-m", "agents.apg"] and a[a.index("--total-steps") + 1] == "5000" for a in by.values())
+    assert "horizon=4" in by["h4"] and {"horizon=4", "critic=True"} <= set(by["h4_critic"]) and "node=score" in by["score"]

@@ -88,7 +88,7 @@ def test_grid_is_data_and_filters_work(tmp_path):
     full = compare.load_grid(quick=False)
     cells = compare.build_cells(full, tmp_path)
     assert len(full["seeds"]) >= 5
-    assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "planet"}
+    assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "planet", "apg"}
     heldout = set(full["heldout"])
     assert {"horizontal", "vertical", "diagonal", "antidiagonal", "random", "random_curve"} | heldout \
         == {c["target"] for c in cells}
@@ -254,8 +254,11 @@ def test_report_shows_where_a_cell_ran_and_how_it_was_resumed(quick, tmp_path):
     meta.update(learner_device="cuda", resume_command="python -m agents.sac --out X --resume --device cpu",
                 machine=dict(meta["machine"], gpu="Some GPU", note="resumed on a CPU"))
     meta_path.write_text(json.dumps(meta))
+    from benchmarks.compare.report import KEPT
+    (tmp_path / "R.md").write_text(f"# an old report\n\n{KEPT}\n\n## Calibration\n\nhand table\n")
     compare.write_report(grid, cells_dir, tmp_path / "R.md", None)
     md = (tmp_path / "R.md").read_text()
+    assert "an old report" not in md and md.endswith(f"{KEPT}\n\n## Calibration\n\nhand table\n")   # kept
     assert "(1 of 1 seeds with --learner-device: machines in the per-seed list)" in md
     assert "--learner-device cuda" in md
     assert "` then `python -m agents.sac --out X --resume --device cpu` (" in md

@@ -110,7 +110,9 @@ def _preamble(grid: dict[str, Any], out: Path, loaded: list, doc: Path) -> list[
               "**Env steps**: learners: training env transitions actually run (the budget, or more: PPO collects "
               "whole rollouts of n_steps × num_envs transitions, as SB3 does, so it stops at the first rollout "
               "boundary at or past the budget); planners: moves executed over the "
-              "cell's episodes. **Sim evals**: rope-moves simulated by a planner per episode (learners: none). "
+              "cell's episodes; APG (a policy trained through the simulator's gradients) adds in brackets the "
+              "rope-moves it backpropagated through the simulator in training. "
+              "**Sim evals**: rope-moves simulated by a planner per episode (learners: none). "
               "**Wall**: seconds per cell (planners: and planning seconds per move).", ""]
     if grid.get("budgets"):
         lines += [f"**Budgets.** {' '.join(grid['budgets'].split())}", ""]
@@ -147,10 +149,15 @@ def _row(grid: dict[str, Any], out: Path, target: str, key: tuple[str, str, str]
         moves += f" (to 2 cm: {st['moves2']:.1f})"
     text = [method, variant, f"{st['seeds']} × {st['episodes'] // max(st['seeds'], 1)}",
             f"{_fmt_ci(*st['s1'])}; {_fmt_ci(*st['s1_w'])}", f"{_fmt_ci(*st['s2'])}; {_fmt_ci(*st['s2_w'])}",
-            _fmt_ci(*st["err"], scale=100.0), moves, f"{st['env_steps']:.0f}",
+            _fmt_ci(*st["err"], scale=100.0), moves,
+            f"{st['env_steps']:.0f}" + ("" if st.get("sim_backward") is None
+                                        else f" ({st['sim_backward']:.0f} sim backward)"),
             "—" if st["sim_evals"] is None else f"{st['sim_evals']:.0f}", w, f"`{cmd}`"]
     details = [f"- {method}/{variant} seed {c['seed']}: `{r['_command']}` ({machine_label(r)})" for c, r in items]
     return text, st, cost, details
+
+
+KEPT = "<!-- kept by benchmarks.compare --report: the sections below come from other benchmarks -->"
 
 
 def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures: Path | str | None,
@@ -196,5 +203,9 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
             quick = grid["name"] == "quick"
             lines += ["## Figures" + (" (quick run: format only, not results)" if quick else ""), ""]
             lines += [f"![{f.stem}]({rel}/{f.name})" for f in figs] + [""]
-    write_text_atomic(doc, "\n".join(lines) + "\n")
+    kept = ""
+    if doc.exists():                           # sections of other benchmarks below the marker survive a rewrite
+        old = doc.read_text()
+        kept = old[old.index(KEPT):] if KEPT in old else ""
+    write_text_atomic(doc, "\n".join(lines) + "\n" + (f"\n{kept}" if kept else ""))
     return table

@@ -62,5 +62,8 @@ def row_stats(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "env_steps": float(np.mean([r["env_steps"] for r in runs])),
         "sim_evals": float(np.mean([r["sim_evals"] / len(r["episodes"]) for r in runs])) if planner else None,
         "wall": float(np.mean([r["wall_s"] for r in runs])),
+        # APG: rope-moves backpropagated through the simulator in training (its results' sim_backward)
+        "sim_backward": (float(np.mean([r["sim_backward"] for r in runs]))
+                         if all("sim_backward" in r for r in runs) else None),
         "s_per_move": float(np.mean([r["plan_s_per_step"] for r in runs])) if planner else None,
     }
