@@ -8,6 +8,8 @@ Conditions, for each method (CEM and the gradient planner, their own code in-pro
 and run_episode):
 
 - matched: model = real rope = the nominal params (--params);
+- oracle: the real ropes below, each planned on its own parameters (the matched case for those ropes: the
+  other conditions on them are compared against it, episode for episode);
 - mismatched: the model is nominal; the real rope has k_s, k_b, k_d and mass each scaled by a factor drawn per seed,
   log-uniform in [1 - spread, 1 + spread] ([0.7, 1.3] by default), from a generator seeded with the seed (printed
   and recorded);
@@ -200,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     for s in args.seeds:
         print(f"seed {s}: real rope = nominal x " + ", ".join(f"{k} {f:.3f}" for k, f in
                                                               real_factors(s, args.spread).items()), flush=True)
-    conditions = {"matched": lambda s: (nominal, nominal), "mismatched": lambda s: (nominal, reals[s])}
+    conditions = {"matched": lambda s: (nominal, nominal), "oracle": lambda s: (reals[s], reals[s]),
+                  "mismatched": lambda s: (nominal, reals[s])}
     fits = {}
     if args.calibrate:
         for s in args.seeds:

@@ -367,7 +367,11 @@ def identifiability(sim: Simulator, moves: Moves, theta: torch.Tensor, offsets: 
     if at_theta is None:
         fit_starts = offsets is not None if fit_starts is None else fit_starts
         at_theta = linearize(sim, moves, theta[None], None if offsets is None else offsets[None], fit_starts, step)
-    curvature = at_theta.curvature()[0]
+    # the common scale of all four is an exact symmetry (forces and masses scale together): projected out, since
+    # finite differences leave a spurious small curvature along it (measured: k_s "identifiable" on 1 seed of 10)
+    scale = torch.full((4, 1), 0.5, dtype=torch.float64)
+    projector = torch.eye(4, dtype=torch.float64) - scale @ scale.T
+    curvature = projector @ at_theta.curvature()[0] @ projector
     dof = max(at_theta.count - at_theta.unknowns(), 1)
     sigma2 = float(at_theta.r.pow(2).sum()) / dof
     eigenvalues, eigenvectors = torch.linalg.eigh(curvature)
@@ -490,7 +494,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--record-every", type=int, default=50, help="--synthetic: substeps between frames (default 50)")
     ap.add_argument("--method", choices=("gauss-newton", "adam"), default="gauss-newton",
                     help="Levenberg-Marquardt with a finite-difference Jacobian (default), or Adam on the gradient")
-    ap.add_argument("--starts", type=int, default=1, help="initial guesses fitted at once (default 1)")
+    ap.add_argument("--starts", type=int, default=4,
+                    help="initial guesses fitted at once: the nominal and random ones (default 4; with 1, 1 of 10 "
+                         "synthetic seeds ended in a local optimum)")
     ap.add_argument("--hold", default="k_d,mass",
                     help="gauss-newton: parameters kept at their nominal values, comma-separated, or 'none' (default "
                          "k_d,mass: one must set the scale, and mass/k_d is nearly flat)")

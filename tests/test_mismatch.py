@@ -100,7 +100,7 @@ def test_mismatch_benchmark_tiny_run_writes_its_table(tmp_path, capsys):
     table = (out / "mismatch.md").read_text()
     assert (out / "mismatch.png").stat().st_size > 0                        # the picture beside the table
     for method in ("cem", "gradient"):
-        for condition in ("matched", "mismatched", "calibrated", "given"):
+        for condition in ("matched", "oracle", "mismatched", "calibrated", "given"):
             assert f"| {method} | {condition} |" in table
     res = json.loads((out / "results.json").read_text())
     rows = {(r["method"], r["condition"]): r for r in res["rows"]}
@@ -109,6 +109,7 @@ def test_mismatch_benchmark_tiny_run_writes_its_table(tmp_path, capsys):
     assert mis["model_params"] == physical_values(nominal)
     assert mis["real_params"] == pytest.approx({k: getattr(nominal, k) * factors[k] for k in PHYSICAL})
     assert rows["gradient", "given"]["per_seed"][0]["model_params"]["k_d"] == pytest.approx(nominal.k_d * 1.1)
+    assert rows["cem", "oracle"]["per_seed"][0]["model_params"] == mis["real_params"]
     fitted = rows["cem", "calibrated"]["per_seed"][0]["model_params"]      # fitted to 4 moves of the real rope
     real = mis["real_params"]
     for a in ("k_s", "k_b"):
