@@ -11,12 +11,12 @@ evaluation does.
     env = policy.make_env()                                               # the run's evaluation env (batched)
     result = evaluate(policy.batched(env), env, 20, seed=policy.config.run.eval_seed)
 
-SAC, PPO and APG act from the observation alone (APG: its node rule and mean drag): their actions are the network's deterministic ones (SAC: the argmax
-node and the mean drag, or the squashed Gaussian's mean; PPO: the distribution's mode). PlaNet acts by planning
-through its learned model with CEM, and its planner keeps per-rope state (warm starts, the RSSM's belief) read from
-the env it is bound to: ``batched(env)`` binds a fresh planner to that env, and the one-observation form binds one
-to a private one-rope env that only counts the moves since ``reset()`` (and takes the target from the
-observation). Its CEM generators start from the run's ``eval_seed``, as the run's evaluation planner did.
+SAC, PPO and APG act from the observation alone: their actions are the network's deterministic ones (SAC: the argmax
+node and the mean drag, or the squashed Gaussian's mean; PPO: the distribution's mode; APG: its node rule's node and
+the mean drag). PlaNet acts by planning through its learned model with CEM, and its planner keeps per-rope state
+(warm starts, the RSSM's belief) read from the env it is bound to: ``batched(env)`` binds a fresh planner to that
+env, and the one-observation form binds one to a private one-rope env that only counts the moves since ``reset()``
+(and takes the target from the observation). Its CEM generators start from the run's ``eval_seed``, as the run's evaluation planner did.
 """
 from __future__ import annotations
 
