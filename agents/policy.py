@@ -16,7 +16,8 @@ node and the mean drag, or the squashed Gaussian's mean; PPO: the distribution's
 the mean drag). PlaNet acts by planning through its learned model with CEM, and its planner keeps per-rope state
 (warm starts, the RSSM's belief) read from the env it is bound to: ``batched(env)`` binds a fresh planner to that
 env, and the one-observation form binds one to a private one-rope env that only counts the moves since ``reset()``
-(and takes the target from the observation). Its CEM generators start from the run's ``eval_seed``, as the run's evaluation planner did.
+(and takes the target from the observation). Its CEM generators start from the run's
+``eval_seed``, as the run's evaluation planner did.
 """
 from __future__ import annotations
 
