@@ -16,6 +16,10 @@ the fused kernel's adjoint). The table prints, per H:
 - |dJ/da_0|: the gradient reaching the FIRST move's drag (median, max over ropes): how the chain carries it back;
 - non-finite: ropes whose gradient had NaN/inf (none is ever zeroed; they are counted and left out).
 
+``--bound K`` also runs K episodes of the policy APG's greedy-node relaxation could at best become: at every move
+the greedy node with the drag the gradient planner optimizes for that node alone (planners.gradient, 20 Adam
+iterations, 3 initial drags, no halving): its success and moves bound what a learned drag can reach with that node.
+
 Without ``--run`` the actor is a fresh one of params/apg.yaml (its drags start near zero); ``--set KEY=VALUE``
 changes that config (e.g. --set node=score).
 """
@@ -71,6 +75,26 @@ def rope_gradient(actor: apg.Actor, sim, p, cfg, pos: torch.Tensor, target: torc
     return total.item(), g, float(first.grad.norm())
 
 
+def greedy_node_bound(cfg: apg.APGConfig, episodes: int, seed: int) -> tuple[float, float]:
+    """(success rate, mean moves of the successes) of the greedy node with a per-move optimized drag."""
+    from planners.gradient import GradientPlanner
+    p = cfg.task.cable_params()
+    env = BatchedShapeControl(num_envs=1, **env_kwargs(cfg.task, p))
+    planner = GradientPlanner(env.sim, iters=20, restarts=3, halvings=0)
+    wins, moves = [], []
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=seed + ep)
+        for t in range(env.max_steps):
+            s = env.get_state(generators=False)
+            planner.nodes = [int(apg.greedy_node(obs)[0])]
+            obs, _, term, trunc, info = env.step(planner.plan(s.pos[0], s.target[0])[None])
+            if bool(term[0] | trunc[0]):
+                break
+        wins.append(bool(info["is_success"][0]))
+        moves += [t + 1] if wins[-1] else []
+    return sum(wins) / episodes, sum(moves) / max(len(moves), 1)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.apg_gradients", description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", default=None, help="an apg run folder (its checkpoint.pt); default: a fresh actor")
@@ -78,10 +102,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ropes", type=int, default=32)
     ap.add_argument("--seed", type=int, default=20_000, help="env reset seed of the start ropes")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--bound", type=int, default=0, metavar="K",
+                    help="also K episodes (env.reset(seed=eval_seed + i)) of the greedy node with an optimized drag")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config key (no --run only)")
     args = ap.parse_args(argv)
-    if args.ropes < 2 or min(args.horizons) < 1:
-        ap.error("--ropes must be at least 2 and every horizon at least 1")
+    if args.ropes < 2 or min(args.horizons) < 1 or args.bound < 0:
+        ap.error("--ropes must be at least 2, every horizon at least 1 and --bound at least 0")
     if args.run and args.set:
         ap.error("--set changes the fresh actor's config: a --run brings its own")
     if any("=" not in item for item in args.set):
@@ -123,6 +149,10 @@ def main(argv: list[str] | None = None) -> int:
                   f"| {cos:.2f} | {float(a0.median()):.3g}; {float(a0.max()):.3g} | {len(rows) - len(ok)} "
                   f"| {time.perf_counter() - t0:.1f} |", flush=True)
         print(f"(cos to H={args.horizons[0]}: the first horizon listed)")
+        if args.bound:
+            rate, moves = greedy_node_bound(cfg, args.bound, cfg.run.eval_seed)
+            print(f"greedy node + the gradient planner's drag for it, {args.bound} episodes from env.reset(seed="
+                  f"{cfg.run.eval_seed} + i): success {rate:.2f}, {moves:.1f} moves (successes)")
     return 0
 
 
