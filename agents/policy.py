@@ -100,19 +100,26 @@ def load_weights(net: torch.nn.Module, state: Any, path: Path, part: str) -> Non
 
 
 # ====================================================================== the acting networks, rebuilt
+def _acting(net: torch.nn.Module, ck: dict[str, Any], key: str, path: Path,
+            act: Callable[[Any, bool], torch.Tensor]) -> BatchedPolicy:
+    """``net`` with the checkpoint's ``key`` weights, in eval mode, and its policy ``act(obs, deterministic)``
+    without gradients."""
+    load_weights(net, ck[key], path, key)
+    net.eval()
+
+    @torch.no_grad()
+    def policy(o: Any, deterministic: bool = True) -> torch.Tensor:
+        return act(o, deterministic)
+    return policy
+
+
 def sac_actor(cfg, ck: dict[str, Any], obs: Any, action_dim: int, path: Path) -> BatchedPolicy:
     """SAC's actor as ``agents.sac.train`` builds it (HybridActor or Actor by cfg.policy), and its policy."""
     from agents import sac
     p = cfg.task.cable_params()
     actor = (sac.HybridActor(obs, cfg, p.length, p.n_nodes) if cfg.policy == "hybrid"
              else sac.Actor(obs, action_dim, cfg, p.length)).to(cfg.run.device)
-    load_weights(actor, ck["actor"], path, "actor")
-    actor.eval()
-
-    @torch.no_grad()
-    def policy(o: Any, deterministic: bool = True) -> torch.Tensor:
-        return actor.env_action(o, deterministic)
-    return policy
+    return _acting(actor, ck, "actor", path, actor.env_action)
 
 
 def ppo_agent(cfg, ck: dict[str, Any], obs: Any, action_dim: int, path: Path) -> BatchedPolicy:
@@ -120,13 +127,7 @@ def ppo_agent(cfg, ck: dict[str, Any], obs: Any, action_dim: int, path: Path) ->
     from agents import ppo
     p = cfg.task.cable_params()
     agent = ppo.ActorCritic(obs, action_dim, cfg, p.length, p.n_nodes).to(cfg.run.device)
-    load_weights(agent, ck["agent"], path, "agent")
-    agent.eval()
-
-    @torch.no_grad()
-    def policy(o: Any, deterministic: bool = True) -> torch.Tensor:
-        return agent.act(o, deterministic)
-    return policy
+    return _acting(agent, ck, "agent", path, agent.act)
 
 
 def planet_model(cfg, ck: dict[str, Any], obs: Any, action_dim: int, path: Path) -> Callable[[Any], BatchedPolicy]:
@@ -143,13 +144,7 @@ def apg_actor(cfg, ck: dict[str, Any], obs: Any, action_dim: int, path: Path) ->
     from agents import apg
     p = cfg.task.cable_params()
     actor = apg.Actor(obs, cfg, p.length, p.n_nodes).to(cfg.run.device)
-    load_weights(actor, ck["actor"], path, "actor")
-    actor.eval()
-
-    @torch.no_grad()
-    def policy(o: Any, deterministic: bool = True) -> torch.Tensor:
-        return actor.env_action(o, deterministic)
-    return policy
+    return _acting(actor, ck, "actor", path, actor.env_action)
 
 
 BUILDERS = {"sac": sac_actor, "ppo": ppo_agent, "planet": planet_model, "apg": apg_actor}

@@ -296,7 +296,7 @@ def fit_gauss_newton(sim: Simulator, moves: Moves, starts: int = 1, iterations: 
 
     Stages, ``iterations`` each: (1) theta on the recorded starts; (2) with ``fit_starts`` (default) theta and each
     move's start shape together: the recorded start frames carry the tracker's noise, and replaying a move from a
-    noisy start biases the ratios (errors in variables: +2.0 % and +4.5 % on k_s/k_d and k_b/k_d at 1 mm noise
+    noisy start biases the ratios (errors in variables: -0.02 % and +3.12 % on k_s/k_d and k_b/k_d at 1 mm noise
     without it, measured); the starts come second so that they do not absorb a wrong theta's error. (3) Moves
     whose rms error is still above ``outlier_factor`` times the median move's are left out and the last stage runs
     again on the rest: a move replayed from a noisy start can take another branch (a tight fold bending the other
