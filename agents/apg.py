@@ -22,6 +22,10 @@ simulator. ``node`` says how it is chosen and learned:
 - ``greedy``: the node farthest from its place in the centroid-aligned target (``diffdlo.task.greedy_drags``, the
   greedy planner's choice); only the drag is learned, pathwise. A relaxation by a fixed rule: nothing is learned
   about the node.
+- ``gain``: a head G(s, k) predicts the reward of moving node k with the policy's drag; it regresses the reward of
+  the node moved (MSE), the node is argmax_k G in evaluation and in training except for a share ``gain_explore`` of
+  uniformly random nodes (decaying linearly to 0 over the run). A contextual bandit over the nodes beside the
+  pathwise drag; the drag of the chosen node gets the pathwise gradient.
 
 The actor is SAC tuned's ``HybridActor`` (agents/sac.py: relative features, running normalization, an MLP, per-node
 logits and tanh drags), acting with its mean drag: the gradient is exact, so no drag noise is needed to explore, and
@@ -53,7 +57,7 @@ from agents.sac import HybridActor
 from diffdlo.rewards import reward as move_reward, shape_error
 from diffdlo.task import decode_node_action, greedy_drags
 
-NODE_RULES = ("score", "greedy")
+NODE_RULES = ("score", "greedy", "gain")
 OBJECTIVES = ("reward", "log_error")
 
 
@@ -66,7 +70,8 @@ class APGConfig:
     inputs: InputOptions = part(InputOptions)
     # checkpoints and evaluations are checked after each update; log_every counts updates
     horizon: int = 1                      # H: moves chained in one differentiable rollout
-    node: str = "greedy"                  # "greedy" | "score" (see the module's docstring)
+    node: str = "greedy"                  # "greedy" | "score" | "gain" (see the module's docstring)
+    gain_explore: float = 0.3             # node "gain": the share of random nodes in training, decaying linearly to 0
     critic: bool = False                  # SHAC: learned V(s) beyond the horizon (and as the node's baseline)
     objective: str = "reward"             # "reward": the env's reward; "log_error": log e_t - log e_{t+1} per move
     lr: float = 1e-3                      # actor's Adam
@@ -90,7 +95,7 @@ class APGConfig:
         check_layer_sizes("hidden", self.hidden)
         check_ranges(self, {"horizon": "[1, inf)", "lr": "(0, inf)", "critic_lr": "(0, inf)",
                             "critic_epochs": "[1, inf)", "gamma": "[0, 1]", "gae_lambda": "[0, 1]",
-                            "node_coef": "[0, inf)", "ent_coef": "[0, inf)", "max_grad_norm": "[0, inf)",
+                            "node_coef": "[0, inf)", "ent_coef": "[0, inf)", "gain_explore": "[0, 1]", "max_grad_norm": "[0, inf)",
                             "log_std_min": "(-inf, inf)", "log_std_max": "(-inf, inf)"})
         if self.node not in NODE_RULES:
             raise ValueError(f"unknown node {self.node!r}: use one of {list(NODE_RULES)}")
@@ -128,14 +133,26 @@ class Actor(nn.Module):
     def __init__(self, obs_example: Any, cfg: APGConfig, length: float, n_nodes: int):
         super().__init__()
         self.net, self.rule, self.n = HybridActor(obs_example, cfg, length, n_nodes), cfg.node, n_nodes
+        self.gain = mlp(self.net.feat.out_dim, cfg.hidden, n_nodes) if cfg.node == "gain" else None
+
+    def gains(self, obs: Any) -> torch.Tensor:
+        """Node "gain": G(s, k) (B, N), the predicted reward of moving each node with the policy's drag."""
+        return self.gain(self.net.feat(obs))
 
     def dist(self, obs: Any) -> tuple[torch.Tensor, torch.Tensor]:
         log_pk, drags, _ = self.net(obs, True)
         return log_pk, drags
 
-    def choose(self, obs: Any, log_pk: torch.Tensor, deterministic: bool) -> torch.Tensor:
+    def choose(self, obs: Any, log_pk: torch.Tensor, deterministic: bool, explore: float = 0.0) -> torch.Tensor:
         if self.rule == "greedy":
             return greedy_node(obs)
+        if self.rule == "gain":
+            with torch.no_grad():
+                best = self.gains(obs).argmax(-1)
+            if deterministic or explore <= 0:
+                return best
+            wild = torch.rand(len(best), device=best.device) < explore
+            return torch.where(wild, torch.randint_like(best, self.n), best)
         return log_pk.argmax(-1) if deterministic else torch.distributions.Categorical(logits=log_pk).sample()
 
     def env_action(self, obs: Any, deterministic: bool = True) -> torch.Tensor:
@@ -223,7 +240,8 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
         pos, target = state.pos, state.target
         disc = torch.ones(num_envs, device=device)
         J = torch.zeros(num_envs, device=device)
-        rec: dict[str, list] = {k: [] for k in ("obs", "log_prob", "entropy", "reward", "done", "value", "next_value")}
+        rec: dict[str, list] = {k: [] for k in ("obs", "log_prob", "entropy", "reward", "done", "value", "next_value",
+                                                   "gain_loss")}
         for _ in range(h):
             o = env.to_learner(graph_obs(obs_type, pos, target))
             with torch.no_grad():
@@ -232,7 +250,8 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
                     if critic is not None:
                         critic.feat.norm.load_state_dict(actor.net.feat.norm.state_dict())
             log_pk, drags = actor.dist(o)
-            node = actor.choose(o, log_pk, deterministic=False)
+            node = actor.choose(o, log_pk, deterministic=False,
+                                explore=cfg.gain_explore * max(0.0, 1.0 - run.step / cfg.run.total_steps))
             rows = torch.arange(num_envs, device=device)
             action, new, r = move_graph(sim, p, pos, target, node, drags[rows, node], reward_kind, cfg.objective)
             r = r.to(device)
@@ -251,6 +270,8 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
             rec["log_prob"].append(log_pk[rows, node])
             rec["entropy"].append(-(log_pk.exp() * log_pk).sum(-1))
             rec["reward"].append(r_env.float())
+            if actor.gain is not None:                                             # node "gain": G(s, k) -> r
+                rec["gain_loss"].append((actor.gains(o)[rows, node] - r.detach()) ** 2)
             rec["done"].append(done)
             rec["next_value"].append(v_final)                                        # fixed below where not done
             now = env.core.get_state(generators=False)                               # the reset ropes' new starts
@@ -261,7 +282,7 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
         with torch.no_grad():
             rec["next_value"] = [torch.where(rec["done"][t], rec["next_value"][t],
                                              rec["value"][t + 1] if t + 1 < h else value(o_last)) for t in range(h)]
-        out = {k: torch.stack(v) for k, v in rec.items() if k != "obs"}
+        out = {k: torch.stack(v) for k, v in rec.items() if k != "obs" and v}
         out["obs"], out["J"] = rec["obs"], J
         return out
 
@@ -281,9 +302,10 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
         node_grads = None                            # the score-function gradient, kept apart to log its norm
         if cfg.node == "score":
             node_grads = torch.autograd.grad(node_loss, actor_params, retain_graph=True, allow_unused=True)
-        path_loss.backward()
+        gain_loss = ro["gain_loss"].mean() if "gain_loss" in ro else None
+        (path_loss if gain_loss is None else path_loss + gain_loss).backward()
         counts["sim_backward"] += h * num_envs
-        g_path = grad_norm(actor_params)
+        g_path = grad_norm(list(actor.net.parameters()))             # the policy net's pathwise gradient
         g_node = 0.0
         if node_grads is not None:
             g_node = float(torch.linalg.vector_norm(torch.stack([g.norm() for g in node_grads if g is not None])))
@@ -320,6 +342,7 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
                 "entropy": ro["entropy"].mean().item(), "grad_norm_path": g_path, "grad_norm_node": g_node,
                 "grad_norm": g_total, "clipped": float(clipped), "max_grad_norm": cfg.max_grad_norm,
                 "critic_loss": critic_loss, "grad_norm_critic": g_critic, "horizon": h,
+                "gain_loss": float("nan") if gain_loss is None else gain_loss.item(),
                 "lr": actor_opt.param_groups[0]["lr"], **counts})
             run.log_rollout()
         run.evaluate_if_due(lambda: run.evaluate(policy))
