@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from . import control, kernel, shapes
+from . import control, kernel, shapes, triton_kernel
 from .forces import energy, internal_forces
 from .integrate import max_speed, semi_implicit_step
 from .params import CableParams, load_params
@@ -43,7 +43,7 @@ class MoveInfo:
         return self.drag_substeps + self.settle_substeps
 
 
-BACKENDS = ("auto", "kernel", "torch")
+BACKENDS = ("auto", "kernel", "torch", "triton")
 
 
 class Simulator:
@@ -52,7 +52,11 @@ class Simulator:
     ``backend``: "torch" is the eager reference path (every controller, any device); "kernel" is the fused C++
     CPU kernel (kinematic controller; diffdlo/csrc/cable.cpp) with a hand-written adjoint, per-rope physics and
     frame recording included; "auto" (default) uses the kernel where it applies (CPU tensors, kinematic drag) and
-    the torch path elsewhere. Both run the same scheme and agree to rounding.
+    the torch path elsewhere. "triton" is the fused Triton kernel (diffdlo/triton_kernel.py: one launch per move,
+    kinematic controller, per-rope physics; its backward recomputes the move on the eager path under autograd) on
+    CUDA tensors, or on CPU tensors in Triton's interpreter (TRITON_INTERPRET=1); "auto" picks it on CUDA where
+    triton imports and the controller is kinematic. Moves that record frames run on the eager path with it.
+    All run the same scheme and agree to rounding.
     """
 
     def __init__(self, params: CableParams | str | None = None, device: torch.device | str = "cpu",
@@ -78,6 +82,13 @@ class Simulator:
                                  f"{params.controller!r}; use 'auto' or 'torch'")
             if not kernel.available():
                 raise RuntimeError(f"backend 'kernel' is unavailable: {kernel.unavailable_reason()}")
+        if backend == "triton":
+            if params.controller != "kinematic":
+                raise ValueError(f"backend 'triton' supports the kinematic controller only, not "
+                                 f"{params.controller!r}; use 'auto' or 'torch'")
+            reason = triton_kernel.device_reason(self.device)
+            if reason is not None:
+                raise RuntimeError(f"backend 'triton' is unavailable on {self.device}: {reason}")
         self.params = params
         self.dtype = dtype
         self.backend = backend
@@ -89,9 +100,29 @@ class Simulator:
     def uses_kernel(self, record_every: int = 0) -> bool:
         """Whether moves and free evolution run in the fused C++ kernel (with or without per-rope physics and frame
         recording: ``record_every`` no longer matters and is kept for callers that pass it)."""
-        if self.backend == "torch" or self.device.type != "cpu":
+        if self.backend in ("torch", "triton") or self.device.type != "cpu":
             return False
         return self.params.controller == "kinematic" and (self.backend == "kernel" or kernel.available())
+
+    def triton_unsupported(self, record_every: int = 0) -> str | None:
+        """Why moves (``record_every`` > 0: with frames) do not run in the Triton kernel (None: they do)."""
+        if self.backend not in ("triton", "auto"):
+            return f"backend is {self.backend!r}"
+        if self.backend == "auto" and self.device.type != "cuda":
+            return "backend 'auto' uses the Triton kernel on CUDA devices only"
+        if self.params.controller != "kinematic":
+            return f"the Triton kernel supports the kinematic controller only, not {self.params.controller!r}"
+        reason = triton_kernel.device_reason(self.device)
+        if reason is not None:
+            return reason
+        if record_every > 0:
+            return "the Triton kernel does not record frames (record_every > 0): that move runs on the eager path"
+        return None
+
+    def uses_triton(self, record_every: int = 0) -> bool:
+        """Whether moves (with frames every ``record_every`` substeps, if > 0) and free evolution run in the
+        fused Triton kernel (diffdlo/triton_kernel.py)."""
+        return self.triton_unsupported(record_every) is None
 
     # ----------------------------------------------------------------- input checks
     def _check_state(self, name: str, x: torch.Tensor) -> None:
@@ -186,6 +217,11 @@ class Simulator:
             if diverged.any():
                 self._check_finite(pos, f"after {n_substeps} free substeps")
             return pos, vel
+        if n_substeps > 0 and self.uses_triton():
+            pos, vel, _, _, diverged = self._triton_apply(pos, vel, None, None, None, n_substeps, physics)
+            if bool(diverged.any()):
+                self._check_finite(pos, f"after {n_substeps} free substeps")
+            return pos, vel
         for _ in range(n_substeps):
             pos, vel = self.substep(pos, vel, physics=physics)
         self._check_finite(pos, f"after {n_substeps} free substeps")
@@ -229,6 +265,24 @@ class Simulator:
         if self.uses_kernel(record_every):
             return self._move_kernel(pos, vel, node, delta, speed, path_steps, return_info,
                                      record_every if return_info else 0, physics, differentiable_frames)
+        if self.uses_triton(record_every if return_info else 0):
+            return self._move_triton(pos, vel, node, delta, path_steps, return_info, physics)
+        pos, _, grasp_steps_cpu, finished_at, settled, frames = self._move_eager(
+            pos, vel, node, delta, speed, path_steps, physics, record_every, differentiable_frames)
+        if not return_info:
+            return pos
+        if frames is not None and frames[-1] is not pos:
+            frames.append(pos if differentiable_frames else pos.detach().clone())
+        info = MoveInfo(drag_substeps=grasp_steps_cpu, settle_substeps=finished_at - grasp_steps_cpu,
+                        settled=settled, frames=torch.stack(frames) if frames is not None else None)
+        return pos, info
+
+    def _move_eager(self, pos, vel, node, delta, speed, path_steps, physics=None, record_every=0,
+                    differentiable_frames=False):
+        """The eager reference loop of ``move`` (``delta`` already clipped): returns (pos, vel, grasp_steps on the
+        CPU, finished_at, settled, frames list or None). Raises SimulationError on divergence."""
+        p = self.params
+        batch = pos.shape[0]
         grasp_steps = torch.where(path_steps > 0, path_steps + control.hold_substeps(p), path_steps)
         grasp_steps_cpu = grasp_steps.cpu()
         grasped = torch.nn.functional.one_hot(node, p.n_nodes).to(torch.bool).unsqueeze(-1)   # (B, N, 1)
@@ -279,13 +333,30 @@ class Simulator:
                 done_dev = done.to(pos.device, copy=True)
 
         self._check_finite(pos, f"after a move (node={node.tolist()}, delta={delta.tolist()})")
+        return pos, vel, grasp_steps_cpu, finished_at, settled, frames
+
+    def _triton_apply(self, pos, vel, node, delta, path_steps, fixed_steps, physics):
+        batch = pos.shape[0]
+        if physics is None:
+            ks = kb = kd = mass = None
+        else:
+            ks, kb, kd, mass = triton_kernel._physics_tensors(physics, batch, pos.device, pos.dtype)
+        if node is None:
+            node = torch.zeros(batch, dtype=torch.int64, device=pos.device)
+            path_steps = node
+            delta = torch.zeros(batch, 2, dtype=pos.dtype, device=pos.device)
+        return triton_kernel.TritonMove.apply(self, pos, vel, node, delta, path_steps, fixed_steps, ks, kb, kd, mass)
+
+    def _move_triton(self, pos, vel, node, delta, path_steps, return_info, physics=None):
+        pos, _, steps, settled, diverged = self._triton_apply(pos, vel, node, delta, path_steps, -1, physics)
+        if bool(diverged.any()):
+            ids = diverged.nonzero().flatten().tolist()
+            raise SimulationError(f"simulation diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for batch "
+                                  f"members {ids} during a move (node={node.tolist()}, delta={delta.tolist()})")
         if not return_info:
             return pos
-        if frames is not None and frames[-1] is not pos:
-            frames.append(keep(pos))
-        info = MoveInfo(drag_substeps=grasp_steps_cpu, settle_substeps=finished_at - grasp_steps_cpu,
-                        settled=settled, frames=torch.stack(frames) if frames is not None else None)
-        return pos, info
+        path_cpu, steps = path_steps.cpu(), steps.cpu()
+        return pos, MoveInfo(drag_substeps=path_cpu, settle_substeps=steps - path_cpu, settled=settled.cpu())
 
     def _move_kernel(self, pos, vel, node, delta, speed, path_steps, return_info, record_every=0, physics=None,
                      differentiable_frames=False):
