@@ -25,12 +25,13 @@ simulator. ``node`` says how it is chosen and learned:
 - ``gain``: a head G(s, k) predicts the reward of moving node k with the policy's drag; it regresses the reward of
   the node moved (MSE), the node is argmax_k G in evaluation and in training except for a share ``gain_explore`` of
   uniformly random nodes (decaying linearly to 0 over the run). A contextual bandit over the nodes beside the
-  pathwise drag; the drag of the chosen node gets the pathwise gradient.
+  pathwise drag; the drag of the chosen node gets the pathwise gradient. Its (s, k, r) samples are kept in the
+  shared replay buffer (``gain_replay`` of them; no extra simulation) and each update regresses a minibatch of them.
 
 The actor is SAC tuned's ``HybridActor`` (agents/sac.py: relative features, running normalization, an MLP, per-node
 logits and tanh drags), acting with its mean drag: the gradient is exact, so no drag noise is needed to explore, and
 the policy trained is the policy evaluated. The preset "tuned" (params/apg.yaml, where each choice's measurement is
-written) is node ``greedy``, H = 1, no critic, 4 ropes per update and a linearly decaying lr.
+written) is node ``gain``, H = 1, no critic, 4 ropes per update and a linearly decaying lr.
 Gradient norms (pathwise, score-function, total before clipping; the critic's) are logged in train.csv every update;
 clipping happens only with ``max_grad_norm`` > 0, and each update logs whether it clipped. A non-finite gradient
 raises FloatingPointError (never zeroed). Env steps count every rope-move simulated in training (B x H per update);
@@ -50,6 +51,7 @@ from agents import hybrid
 from agents.cli import run_cli
 from agents.config import (InputOptions, RunOptions, TaskOptions, check_layer_sizes, check_ranges, check_types,
                            part)
+from agents.buffer import ReplayBuffer
 from agents.hybrid import FEATURE_OBS
 from agents.networks import Features, mlp
 from agents.run import Run, learner
@@ -70,8 +72,10 @@ class APGConfig:
     inputs: InputOptions = part(InputOptions)
     # checkpoints and evaluations are checked after each update; log_every counts updates
     horizon: int = 1                      # H: moves chained in one differentiable rollout
-    node: str = "greedy"                  # "greedy" | "score" | "gain" (see the module's docstring)
-    gain_explore: float = 0.3             # node "gain": the share of random nodes in training, decaying linearly to 0
+    node: str = "gain"                    # "gain" | "greedy" | "score" (see the module's docstring)
+    gain_explore: float = 0.5             # node "gain": the share of random nodes in training, decaying linearly to 0
+    gain_replay: int = 5000               # node "gain": (s, k, r) samples kept for its regression (0: online only)
+    gain_batch: int = 256                 # node "gain": samples per regression step (one step per update)
     critic: bool = False                  # SHAC: learned V(s) beyond the horizon (and as the node's baseline)
     objective: str = "reward"             # "reward": the env's reward; "log_error": log e_t - log e_{t+1} per move
     lr: float = 1e-3                      # actor's Adam
@@ -95,7 +99,8 @@ class APGConfig:
         check_layer_sizes("hidden", self.hidden)
         check_ranges(self, {"horizon": "[1, inf)", "lr": "(0, inf)", "critic_lr": "(0, inf)",
                             "critic_epochs": "[1, inf)", "gamma": "[0, 1]", "gae_lambda": "[0, 1]",
-                            "node_coef": "[0, inf)", "ent_coef": "[0, inf)", "gain_explore": "[0, 1]", "max_grad_norm": "[0, inf)",
+                            "node_coef": "[0, inf)", "ent_coef": "[0, inf)", "gain_explore": "[0, 1]", "gain_replay": "[0, inf)",
+                            "gain_batch": "[1, inf)", "max_grad_norm": "[0, inf)",
                             "log_std_min": "(-inf, inf)", "log_std_max": "(-inf, inf)"})
         if self.node not in NODE_RULES:
             raise ValueError(f"unknown node {self.node!r}: use one of {list(NODE_RULES)}")
@@ -196,6 +201,11 @@ def actor_losses(J: torch.Tensor, log_prob: torch.Tensor, entropy: torch.Tensor,
     return -J.mean() / len(log_prob), node_loss
 
 
+def rec_obs(o: Any) -> Any:
+    """An observation without its graph, to keep."""
+    return o.detach() if torch.is_tensor(o) else {k: v.detach() for k, v in o.items()}
+
+
 def grad_norm(params: list[torch.Tensor]) -> float:
     grads = [p.grad for p in params if p.grad is not None]
     return float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))) if grads else 0.0
@@ -225,6 +235,10 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
     critic = Critic(run.obs, cfg, p.length).to(device) if cfg.critic else None
     if critic is not None:
         parts.update(critic=critic, critic_opt=torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr))
+    gain_buf = None
+    if cfg.node == "gain" and cfg.gain_replay > 0:
+        gain_buf = ReplayBuffer(-(-cfg.gain_replay // num_envs), num_envs, run.obs, 1, device)
+        parts["gain_buffer"] = gain_buf
     ck = run.start(**parts)
     counts = dict(ck["counts"]) if ck else {"n_updates": 0, "sim_backward": 0, "clipped_updates": 0}
     actor_params = list(actor.parameters())
@@ -266,11 +280,14 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
                 cut = (trunc & ~term).float()
                 J = J + disc * cfg.gamma * cut * critic(env.to_learner(graph_obs(obs_type, new, target)))
             disc = torch.where(done, 1.0, disc * cfg.gamma)
-            rec["obs"].append(o.detach() if torch.is_tensor(o) else {kk: v.detach() for kk, v in o.items()})
+            rec["obs"].append(rec_obs(o))
             rec["log_prob"].append(log_pk[rows, node])
             rec["entropy"].append(-(log_pk.exp() * log_pk).sum(-1))
             rec["reward"].append(r_env.float())
-            if actor.gain is not None:                                             # node "gain": G(s, k) -> r
+            if gain_buf is not None:                                               # node "gain": (s, k, r) kept
+                no = torch.zeros(num_envs, dtype=torch.bool, device=device)
+                gain_buf.add(rec_obs(o), node.float()[:, None], r.detach(), no, no)
+            elif actor.gain is not None:                                           # online: G(s, k) -> r
                 rec["gain_loss"].append((actor.gains(o)[rows, node] - r.detach()) ** 2)
             rec["done"].append(done)
             rec["next_value"].append(v_final)                                        # fixed below where not done
@@ -303,6 +320,10 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
         if cfg.node == "score":
             node_grads = torch.autograd.grad(node_loss, actor_params, retain_graph=True, allow_unused=True)
         gain_loss = ro["gain_loss"].mean() if "gain_loss" in ro else None
+        if gain_buf is not None and len(gain_buf) > 1:                         # node "gain": a replayed minibatch
+            b = gain_buf.sample(cfg.gain_batch)
+            pred = actor.gains(b["obs"])[torch.arange(cfg.gain_batch, device=device), b["action"][:, 0].long()]
+            gain_loss = ((pred - b["reward"]) ** 2).mean()
         (path_loss if gain_loss is None else path_loss + gain_loss).backward()
         counts["sim_backward"] += h * num_envs
         g_path = grad_norm(list(actor.net.parameters()))             # the policy net's pathwise gradient
