@@ -11,6 +11,14 @@ dt = 1 ms, run in the same process on the same inputs. For each batch size B it 
 - bwd/fwd: time of backward of one move over its forward (default path);
 then the peak memory of the gradient of a 10-move sequence at B=256 (measured in a fresh subprocess), and a final
 JSON line with every figure. Timings are medians of --repeats runs; the machine's other load shows up in them.
+
+    python benchmarks/sim_speed.py --device cuda [--batches 1 64 1024 16384 65536] [--eager-max 1024]
+
+On CUDA it compares, for each B, the fused Triton kernel (backend "triton", one launch per move), the eager torch
+path on the same GPU (up to B = --eager-max: it is slow) and the CPU C++ kernel in the same run (up to
+--cpu-max): env steps/s of one batched move, sim s/s of 1 s of free evolution, forward+backward time of one move
+(the Triton backend's backward recomputes the move on the eager path; up to B = --backward-max), and the deviation
+of the float32 Triton move from the float64 eager reference on the GPU (first 64 ropes).
 """
 from __future__ import annotations
 
@@ -27,11 +35,18 @@ import torch
 import diffdlo
 
 
+def _sync() -> None:
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize()
+
+
 def median_time(fn, repeats: int) -> float:
     times = []
     for _ in range(repeats):
+        _sync()
         t0 = time.perf_counter()
         fn()
+        _sync()
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
 
@@ -42,6 +57,61 @@ def problem(sim: diffdlo.Simulator, batch: int, seed: int = 0):
     node = torch.randint(0, sim.params.n_nodes, (batch,), generator=g).to(sim.device)
     delta = ((torch.rand(batch, 2, generator=g) * 2 - 1) * sim.params.action_scale).to(sim.device, sim.dtype)
     return pos, node, delta
+
+
+def cuda_main(args) -> None:
+    """--device cuda: the Triton kernel against the eager path on the GPU and the CPU C++ kernel, same inputs."""
+    p = diffdlo.load_params("cable")
+    tri = diffdlo.Simulator(p, device=args.device, backend="triton")
+    eager = diffdlo.Simulator(p, device=args.device, backend="torch")
+    reference = diffdlo.Simulator(p, device=args.device, dtype=torch.float64, backend="torch")
+    cpu = diffdlo.Simulator(p)                          # auto on the CPU: the C++ kernel where it builds
+    print(f"device {torch.cuda.get_device_name(tri.device)}; CPU path: "
+          f"{'fused C++ kernel' if cpu.uses_kernel() else 'torch'} on {torch.get_num_threads()} threads")
+    header = (f"{'B':>6} {'triton st/s':>12} {'eager st/s':>11} {'cpu st/s':>10} {'x eager':>8} {'x cpu':>7} "
+              f"{'tri sim s/s':>11} {'cpu sim s/s':>11} {'tri f+b s':>10} {'eag f+b s':>10} {'cpu f+b s':>10} "
+              f"{'dev mm':>9}")
+    print(header)
+    rows = []
+    nan = float("nan")
+    for batch in args.batches:
+        pos, node, delta = problem(tri, batch)
+        tri.move(pos[:1], node[:1], delta[:1])          # compile (first call per dtype)
+        tri.integrate(pos[:1], None, 10)
+        t_move = median_time(lambda: tri.move(pos, node, delta), args.repeats)
+        t_free = median_time(lambda: tri.integrate(pos, None, 1000), args.repeats)
+        t_eager = median_time(lambda: eager.move(pos, node, delta), 1) if batch <= args.eager_max else nan
+        pc, nc, dc = pos.cpu(), node.cpu(), delta.cpu()
+        on_cpu = batch <= args.cpu_max
+        t_cpu = median_time(lambda: cpu.move(pc, nc, dc), args.repeats) if on_cpu else nan
+        t_cpu_free = median_time(lambda: cpu.integrate(pc, None, 1000), 1) if on_cpu else nan
+        k = min(batch, 64)
+        ref_move = reference.move(pos[:k].double(), node[:k], delta[:k].double())
+        dev = (tri.move(pos[:k], node[:k], delta[:k]).double() - ref_move).norm(dim=-1).max().item() * 1000
+
+        def fb(sim, x0, n0, d0):
+            def run():
+                x, d = x0.clone().requires_grad_(True), d0.clone().requires_grad_(True)
+                sim.move(x, n0, d).sum().backward()
+            return run
+
+        t_fb = median_time(fb(tri, pos, node, delta), 1) if batch <= args.backward_max else nan
+        t_fb_eager = median_time(fb(eager, pos, node, delta), 1) if batch <= min(args.eager_max, args.backward_max) \
+            else nan
+        t_fb_cpu = median_time(fb(cpu, pc, nc, dc), 1) if on_cpu else nan
+        row = {"batch": batch, "triton_env_steps_per_s": batch / t_move, "eager_env_steps_per_s": batch / t_eager,
+               "cpu_kernel_env_steps_per_s": batch / t_cpu, "triton_over_eager": t_eager / t_move,
+               "triton_over_cpu": t_cpu / t_move, "triton_sim_s_per_s": 1.0 / t_free,
+               "cpu_sim_s_per_s": 1.0 / t_cpu_free, "triton_forward_backward_s": t_fb,
+               "eager_forward_backward_s": t_fb_eager, "cpu_forward_backward_s": t_fb_cpu,
+               "triton_backward_over_forward": (t_fb - t_move) / t_move, "deviation_move_mm": dev}
+        rows.append(row)
+        print(f"{batch:>6} {row['triton_env_steps_per_s']:>12.1f} {row['eager_env_steps_per_s']:>11.1f} "
+              f"{row['cpu_kernel_env_steps_per_s']:>10.1f} {row['triton_over_eager']:>7.1f}x "
+              f"{row['triton_over_cpu']:>6.1f}x {row['triton_sim_s_per_s']:>11.2f} {row['cpu_sim_s_per_s']:>11.2f} "
+              f"{t_fb:>10.3f} {t_fb_eager:>10.3f} {t_fb_cpu:>10.3f} {dev:>9.2e}", flush=True)
+    print(json.dumps({"device": str(tri.device), "gpu": torch.cuda.get_device_name(tri.device),
+                      "threads": torch.get_num_threads(), "rows": rows}))
 
 
 def memory_probe(batch: int, moves: int, backend: str) -> dict:
@@ -71,8 +141,15 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--memory-batch", type=int, default=256)
     parser.add_argument("--memory-moves", type=int, default=10)
+    parser.add_argument("--eager-max", type=int, default=1024, help="cuda: largest B timed on the eager path")
+    parser.add_argument("--cpu-max", type=int, default=65536, help="cuda: largest B timed on the CPU kernel")
+    parser.add_argument("--backward-max", type=int, default=4096,
+                        help="cuda: largest B whose forward+backward is timed (the backward is eager)")
     parser.add_argument("--_memory_probe", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.device.startswith("cuda") and not args._memory_probe:
+        cuda_main(args)
+        return
     if args._memory_probe:
         print(json.dumps(memory_probe(args.memory_batch, args.memory_moves, "auto")))
         return
