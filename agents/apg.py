@@ -99,8 +99,8 @@ class APGConfig:
         check_layer_sizes("hidden", self.hidden)
         check_ranges(self, {"horizon": "[1, inf)", "lr": "(0, inf)", "critic_lr": "(0, inf)",
                             "critic_epochs": "[1, inf)", "gamma": "[0, 1]", "gae_lambda": "[0, 1]",
-                            "node_coef": "[0, inf)", "ent_coef": "[0, inf)", "gain_explore": "[0, 1]", "gain_replay": "[0, inf)",
-                            "gain_batch": "[1, inf)", "max_grad_norm": "[0, inf)",
+                            "node_coef": "[0, inf)", "ent_coef": "[0, inf)", "gain_explore": "[0, 1]",
+                            "gain_replay": "[0, inf)", "gain_batch": "[1, inf)", "max_grad_norm": "[0, inf)",
                             "log_std_min": "(-inf, inf)", "log_std_max": "(-inf, inf)"})
         if self.node not in NODE_RULES:
             raise ValueError(f"unknown node {self.node!r}: use one of {list(NODE_RULES)}")

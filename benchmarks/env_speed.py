@@ -79,7 +79,8 @@ def measure_batched(num_envs: int, steps: int, min_time: float, device: str, bac
 
 def cuda_main(args) -> None:
     rows = []
-    print(f"torch {torch.__version__}, {torch.cuda.get_device_name(args.device)}, CPU {torch.get_num_threads()} threads")
+    print(f"torch {torch.__version__}, {torch.cuda.get_device_name(args.device)}, "
+          f"CPU {torch.get_num_threads()} threads")
     print(f"{'B':>6} {'path':>22} {'steps':>6} {'wall [s]':>9} {'env steps/s':>12}")
     for batch in args.batches:
         runs = [(args.device, "triton"), ("cpu", "auto")]

@@ -56,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|")
     for i, s in enumerate(steps):
         su, ln, fe = c["success_rate"][:, i], c["mean_length"][:, i], c["mean_final_error"][:, i] * 100
-        print(f"| {s} | {su.mean():.2f}; {su.min():.2f}-{su.max():.2f} | {ln.mean():.1f}; {ln.min():.1f}-{ln.max():.1f} "
+        print(f"| {s} | {su.mean():.2f}; {su.min():.2f}-{su.max():.2f} "
+              f"| {ln.mean():.1f}; {ln.min():.1f}-{ln.max():.1f} "
               f"| {fe.mean():.2f} |")
     if args.out is not None:
         try:

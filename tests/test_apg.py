@@ -185,7 +185,8 @@ def test_bad_cli_values_are_named(bad, message, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra", [[], ["--set", "node=score", "--set", "critic=true", "--set", "horizon=2",
-                                         "--set", "max_grad_norm=0.05"], ["--set", "node=gain", "--set", "gain_replay=0"]])
+                                         "--set", "max_grad_norm=0.05"],
+                                   ["--set", "node=gain", "--set", "gain_replay=0"]])
 def test_a_killed_run_resumes_exactly(extra, tmp_path, monkeypatch):
     """Killed right after its checkpoint at 128 of 256 steps, resumed: every CSV row and the results equal the
     uninterrupted run's (lr schedule, normalizer, critic, sampled nodes)."""
