@@ -109,9 +109,9 @@ class APGConfig:
         if self.task.action != "node":
             raise ValueError(f"apg chooses a node and backpropagates through its drag: it needs action 'node', got "
                              f"{self.task.action!r}")
-        if self.task.obs not in FEATURE_OBS:
+        if self.task.obs not in ("points", "distance"):
             raise ValueError(f"apg builds its observation from the rope's positions (differentiably): it needs obs "
-                             f"{list(FEATURE_OBS)}, got {self.task.obs!r}")
+                             f"'points' or 'distance', got {self.task.obs!r}")
         if not self.log_std_min < self.log_std_max:
             raise ValueError(f"log_std_min must be below log_std_max, got {self.log_std_min} and {self.log_std_max}")
 

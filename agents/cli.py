@@ -58,6 +58,10 @@ def make_parser(prog: str, doc: str | None) -> argparse.ArgumentParser:
     ap.add_argument("--checkpoint-every", type=positive_int, default=None,
                     help="env steps between checkpoints" + PRESET_DEFAULT)
     ap.add_argument("--max-steps", type=positive_int, default=None, help="actions per episode" + PRESET_DEFAULT)
+    ap.add_argument("--perception", default=None,
+                    help="obs 'perceived': a perception checkpoint (python -m diffdlo.perception)" + PRESET_DEFAULT)
+    ap.add_argument("--image-size", type=positive_int, default=None,
+                    help="picture side [px] of image and perceived observations" + PRESET_DEFAULT)
     ap.add_argument("--params", default=None, help="cable params name or YAML path" + PRESET_DEFAULT)
     ap.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads" + PRESET_DEFAULT)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -68,7 +72,7 @@ def make_parser(prog: str, doc: str | None) -> argparse.ArgumentParser:
 
 RESUME_KEYS = ("total_steps", "eval_every", "eval_episodes", "checkpoint_every", "device")   # may change at --resume
 CLI_KEYS = ("threads", "target", "obs", "action", "reward", "total_steps", "num_envs", "seed", "device", "eval_every",
-            "eval_episodes", "checkpoint_every", "max_steps", "params")
+            "eval_episodes", "checkpoint_every", "max_steps", "params", "perception", "image_size")
 
 
 def requested_options(args: argparse.Namespace, ap: argparse.ArgumentParser) -> dict[str, Any]:

@@ -92,6 +92,7 @@ class TaskOptions:
     exit_penalty: float = 0.0
     curve_max_turn_deg: float = 12.0      # target "random_curve": the largest turn per node [deg]
     mark_end: bool = False                # images: a dot on node 0 of rope and target (env option)
+    perception: str | None = None         # obs "perceived": a checkpoint of python -m diffdlo.perception
 
     def check(self) -> None:
         check_types(self)
@@ -104,6 +105,12 @@ class TaskOptions:
         _choice("on_exit", self.on_exit, EXIT_RULES)
         if not isinstance(self.mark_end, bool):
             raise ValueError(f"mark_end must be true or false, got {self.mark_end!r}")
+        if (self.obs == "perceived") != (self.perception is not None):
+            raise ValueError(f"obs 'perceived' and perception=PATH go together (a checkpoint of python -m "
+                             f"diffdlo.perception), got obs {self.obs!r} and perception {self.perception!r}")
+        if self.perception is not None:
+            from diffdlo.perception import Perception
+            Perception.load(self.perception, image_size=self.image_size, n_nodes=self.cable_params().n_nodes)
         po = self.param_overrides
         if po is not None:
             fields = {f.name for f in dataclasses.fields(CableParams)}
@@ -296,12 +303,20 @@ def preset_path(algo: str, preset: str | None) -> Path:
 
 
 def load_config(cls, name: str | Path, overrides: dict[str, Any] | None = None):
-    """Config ``cls`` from ``params/<name>.yaml`` (or a YAML path) then ``overrides`` (flat names), checked."""
+    """Config ``cls`` from ``params/<name>.yaml`` (or a YAML path) then ``overrides`` (flat names), checked.
+
+    An ``obs`` override to pictures ("image", "image_single") takes the file's points-only input options with it
+    (features "relative" -> "raw", normalize_obs -> false) unless the overrides set them too: ``--obs image`` alone
+    trains the image encoder instead of failing on a points preset."""
     path = Path(name) if str(name).endswith((".yaml", ".yml")) else PARAMS_DIR / f"{name}.yaml"
     if not path.exists():
         raise ValueError(f"config file {str(path)!r} does not exist")
     values = yaml.safe_load(path.read_text()) or {}
-    values.update(overrides or {})
+    overrides = dict(overrides or {})
+    if overrides.get("obs") in ("image", "image_single") and values.get("features") == "relative":
+        overrides.setdefault("features", "raw")
+        overrides.setdefault("normalize_obs", False)
+    values.update(overrides)
     cfg = from_flat(cls, values)
     cfg.check()
     return cfg

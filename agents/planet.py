@@ -102,15 +102,16 @@ class PlaNetConfig:
         if self.model not in ("ensemble", "rssm"):
             raise ValueError(f"unknown model {self.model!r}: use 'ensemble' or 'rssm'")
         if self.model == "ensemble":
-            if self.task.obs != "points" or self.task.action != "node":
-                raise ValueError(f"model 'ensemble' predicts node positions from node actions: it needs obs 'points' "
+            if self.task.obs not in ("points", "perceived") or self.task.action != "node":
+                raise ValueError(f"model 'ensemble' predicts node positions from node actions: it needs obs 'points' or 'perceived' "
                                  f"and action 'node', got obs {self.task.obs!r} and action {self.task.action!r} "
                                  "(use --preset rssm)")
             check_settings(self.members, self.model_hidden, self.augment, self.frame, self.propagation)
         if self.plan_objective not in ("reward", "shape"):
             raise ValueError(f"plan_objective must be 'reward' or 'shape', got {self.plan_objective!r}")
-        if self.plan_objective == "shape" and self.task.obs not in ("points", "distance"):
-            raise ValueError("plan_objective 'shape' needs points or distance observations (it decodes node positions)")
+        if self.plan_objective == "shape" and self.task.obs not in ("points", "distance", "perceived"):
+            raise ValueError("plan_objective 'shape' needs points, distance or perceived observations (it decodes node "
+                             "positions)")
         check_types(self)
         for key in ("model_hidden", "cnn_channels", "deconv_channels"):
             check_layer_sizes(key, getattr(self, key))

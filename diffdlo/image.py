@@ -58,7 +58,7 @@ def coverage(polylines: torch.Tensor, size: int, view_size: float, line_width: f
     batch, device = pts.shape[0], pts.device
     a, b = pts[:, :-1], pts[:, 1:]                                      # (B, S, 2)
     ab = b - a
-    reach = 0.5 * float(ab.norm(dim=-1).amax()) + width / (2 * px) + 0.5
+    reach = 0.5 * float(ab.detach().norm(dim=-1).amax()) + width / (2 * px) + 0.5
     if not math.isfinite(reach):
         raise ValueError("polylines contain NaN or inf")
     half = int(math.ceil(reach))

@@ -29,7 +29,7 @@ from .params import CableParams
 from .rewards import orientation_error, reward as move_reward, shape_error
 from .shapes import (CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape)
 
-OBS_TYPES = ("points", "distance", "image", "image_single")
+OBS_TYPES = ("points", "distance", "image", "image_single", "perceived")
 ACTION_TYPES = ("node", "pixel")
 ACTION_DIMS = {"node": 3, "pixel": 4}
 EXIT_RULES = ("truncate", "fail")
@@ -183,7 +183,7 @@ def observation_space(obs_type: str, p: CableParams, image_size: int) -> spaces.
     bound = np.float32(max(p.workspace) / 2 + p.length + p.max_disp)
     points = spaces.Box(-bound, bound, (n, 2), np.float32)
     img = spaces.Box(0, 255, (s, s, 3), np.uint8)
-    if obs_type == "points":
+    if obs_type in ("points", "perceived"):
         return spaces.Dict({"node_poses": points, "target_poses": points})
     if obs_type == "distance":
         return spaces.Box(-2 * bound, 2 * bound, (n, 2), np.float32)
@@ -212,7 +212,8 @@ def observe(obs_type: str, pos: torch.Tensor, target: torch.Tensor, image_size: 
 
     "points": {node_poses, target_poses} (B, N, 2) float32 (the multi-input observation); "distance": rope - target
     (B, N, 2) float32 (the single-input one); "image": {image, target_image} (B, S, S, 3) uint8 pictures of the rope
-    and of the target; "image_single": {image}, the rope drawn over the target. ``pictures``: the target's layers
+    and of the target; "image_single": {image}, the rope drawn over the target ("perceived" is the env's: the
+    "image" pictures read by its perception network). ``pictures``: the target's layers
     (``target_pictures``, cached per episode by the env; drawn here when None); their ``end`` layer also marks the
     rope's node 0.
     """
@@ -221,6 +222,9 @@ def observe(obs_type: str, pos: torch.Tensor, target: torch.Tensor, image_size: 
         return {"node_poses": pos.to(torch.float32, copy=True), "target_poses": target.to(torch.float32, copy=True)}
     if obs_type == "distance":
         return (pos - target).to(torch.float32)
+    if obs_type not in ("image", "image_single"):
+        raise ValueError(f"observe draws obs_type 'points', 'distance', 'image' or 'image_single', got {obs_type!r} "
+                         "(an env reads 'perceived' with its perception)")
     if pictures is None:
         pictures = target_pictures(target, image_size, view_size, mark_end=False)
     rope = [(rimage.coverage(pos, image_size, view_size), rimage.ROPE_COLOR)]

@@ -79,12 +79,26 @@ def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *
     return env, planner, (None if isinstance(target, str) else target)
 
 
-def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", progress: bool = True) -> dict[str, Any]:
-    """One episode of receding-horizon control. Returns the episode record plus its frames (T+1, N, 2)."""
+def seen(points: torch.Tensor, perception, rope: bool = True) -> torch.Tensor:
+    """(N, 2) positions -> the (N, 2) positions ``perception`` (diffdlo.perception.Perception) reads from the env's
+    picture of them (obs_type "image" with end markers, at the perception's image size and view)."""
+    from diffdlo.perception import render_uint8
+    picture = render_uint8(points[None].float(), perception.image_size, perception.view_size, rope)
+    return perception.read(picture, rope=rope)[0].to(points)
+
+
+def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", progress: bool = True,
+                perception=None) -> dict[str, Any]:
+    """One episode of receding-horizon control. Returns the episode record plus its frames (T+1, N, 2).
+    ``perception``: the planner is given the rope and the target as this perception reads them from the env's
+    pictures (the target once per episode), not the simulator's state; "seen_error_mm" records how far off they were
+    (mean node distance, averaged over the moves)."""
     env.reset(seed=seed)
     planner.reset()
     state = env.get_state(generators=False)
     target, target_name = state.target[0], state.target_names[0]
+    planned_target = target if perception is None else seen(target, perception, rope=False)
+    seen_errors: list[float] = []
     frames = [state.pos[0]]
     errors = [float(state.info["shape_error"][0])]
     grad0 = getattr(planner, "grad_evals", 0)
@@ -94,7 +108,11 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     bar = tqdm(total=env.max_steps, desc=desc, disable=not progress, leave=True, dynamic_ncols=True)
     while not success:
         t0 = time.perf_counter()
-        action = planner.plan(frames[-1].clone(), target)
+        rope = frames[-1].clone()
+        if perception is not None:
+            rope = seen(rope, perception)
+            seen_errors.append(float((rope - frames[-1]).norm(dim=-1).mean()))
+        action = planner.plan(rope, planned_target)
         plan_s += time.perf_counter() - t0
         _, _, term, trunc, info = env.step(action.detach().reshape(1, -1).to(torch.float64))
         steps += 1
@@ -109,6 +127,9 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     stats = planner.episode_stats() if hasattr(planner, "episode_stats") else {}
     if "grad_evals" in stats:
         stats["grad_evals"] -= grad0
+    if perception is not None:
+        stats["seen_error_mm"] = 1000 * sum(seen_errors) / max(len(seen_errors), 1)
+        stats["seen_target_error_mm"] = 1000 * float((planned_target - target).norm(dim=-1).mean())
     return {**stats, "success": success, "steps": steps, "final_error": errors[-1], "start_error": errors[0],
             "errors": errors, "sim_evals": planner.sim_evals - evals0, "plan_s": plan_s,
             "plan_s_per_step": plan_s / max(steps, 1), "seed": seed, "target_name": target_name,
@@ -138,6 +159,9 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
                         help=f"multiply the real rope's {', '.join(PHYSICAL)} (those of --real-params, else of "
                              f"--params) by FACTOR > 0; repeat for several keys, e.g. --real-scale k_d=2")
     parser.add_argument("--success-tol", type=float, default=None, help="success threshold [m] (default params: 0.01)")
+    parser.add_argument("--perception", default=None, metavar="PATH",
+                        help="plan from the rope and target as this perception checkpoint reads them from the env's "
+                             "pictures (python -m diffdlo.perception), not from the simulator's state")
     parser.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in --out")
     parser.add_argument("--no-gif", action="store_true", help="skip the GIFs")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -200,6 +224,13 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
         return refuse(f"bad --target {args.target!r}: {exc}")
     except (ValueError, RuntimeError) as exc:
         parser.error(str(exc))
+    perception = None
+    if args.perception is not None:
+        from diffdlo.perception import Perception, PerceptionError
+        try:
+            perception = Perception.load(args.perception, n_nodes=real.n_nodes, view_size=env.view_size)
+        except PerceptionError as exc:
+            parser.error(f"--perception: {exc}")
     label = task.target_label(args.target)
     out = Path(args.out or f"runs/{name}-{label}")
     try:
@@ -210,7 +241,7 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     try:
         with out_lock(out):                                 # one writer per --out
             t0 = time.perf_counter()
-            episodes = [run_episode(env, planner, args.seed + i, progress=not args.quiet,
+            episodes = [run_episode(env, planner, args.seed + i, progress=not args.quiet, perception=perception,
                                     desc=f"{name} {label} ep {i + 1}/{args.episodes}") for i in range(args.episodes)]
             mismatch = {} if real == p else {"model_params": physical_values(p), "real_params": physical_values(real)}
             write_outputs(out, name, args, label, target, episodes, time.perf_counter() - t0, extra=mismatch)

@@ -49,7 +49,9 @@ class BatchedShapeControl:
       obs_type: "points" (dict node_poses, target_poses (N, 2) float32: the multi-input observation),
         "distance" ((N, 2) float32 rope - target per node: the single-input observation), "image" (dict
         image, target_image: RGB uint8 (S, S, 3) of the rope and of the target) or "image_single" (dict
-        image: rope drawn over the target in one picture).
+        image: rope drawn over the target in one picture) or "perceived" (dict node_poses, target_poses like
+        "points", but READ from the "image" pictures, end markers drawn, by the perception network ``perception``:
+        diffdlo/perception.py; the target is read once per episode).
       action_type: "node" (eq 2.6, [0, 1]^3: node = round(a0 (N-1)), dx, dy = a 2 s - s with s =
         params.action_scale) or "pixel" (eq 2.5, [0, 1]^4: (a0, a1) = (column, row) fractions of the image view
         window, row 0 at the top; the node nearest to that point is grasped; dx, dy as for "node").
@@ -75,6 +77,8 @@ class BatchedShapeControl:
       curve_max_turn_deg: the largest turning angle per node of target="random_curve" (default 12 deg).
       mark_end: image observations draw a dot on node 0 of the rope (green) and of the target (amber), so a rope
         and its reversal look different (default False: the thesis's pictures, where they do not).
+      perception: obs_type="perceived" only: a perception checkpoint path (``python -m diffdlo.perception``) or a
+        ``diffdlo.perception.Perception``, made for these pictures (image_size, view_size, n_nodes).
       start: None (a random start shape, settled: thesis model.free) or a fixed (N, 2) start shape placed as is
         after every reset (custom easy tasks): finite, with no two consecutive nodes closer than 10% of the rest
         length (ValueError naming the nodes otherwise).
@@ -89,18 +93,21 @@ class BatchedShapeControl:
                  dtype: torch.dtype = torch.float32, backend: str = "auto", success_bonus: float | None = None,
                  step_penalty: float = 0.0, on_exit: str = "truncate", exit_penalty: float = 0.0,
                  curve_max_turn_deg: float = CURVE_MAX_TURN_DEG, mark_end: bool = False, start: Any = None,
-                 max_episode_steps: int | None = None, action_scale: float | None = None):
+                 max_episode_steps: int | None = None, action_scale: float | None = None, perception: Any = None):
         p, self.rules = checked_options(
             num_envs, obs_type, action_type, reward, max_steps, success_tol, params, image_size, view_size,
             success_bonus, step_penalty, on_exit, exit_penalty, curve_max_turn_deg, max_episode_steps=max_episode_steps,
             mark_end=mark_end, action_scale=action_scale)
         self.params = p
-        self.curve_max_turn_deg, self.mark_end = float(curve_max_turn_deg), bool(mark_end)
+        # the perception reads a rope's order from the end marker: "perceived" pictures always carry it
+        self.curve_max_turn_deg, self.mark_end = float(curve_max_turn_deg), bool(mark_end) or obs_type == "perceived"
         self.num_envs = int(num_envs)
         self.obs_type, self.action_type = obs_type, action_type
         self.image_size, self.view_size = int(image_size), float(view_size)
         self.sim = Simulator(p, device=device, dtype=dtype, backend=backend)
         self.device, self.dtype = self.sim.device, dtype
+        self.perception = self._load_perception(perception)
+        self._seen_target: torch.Tensor | None = None          # the perceived targets, read once per episode
         self._named = {name: target_shape(name, p, self.device, dtype) for name in TARGET_NAMES}
         self.start = None if start is None else self._check_start(start)
         self.action_dim = ACTION_DIMS[action_type]
@@ -119,6 +126,25 @@ class BatchedShapeControl:
             rngs=[None] * b, needs_reset=torch.zeros(b, dtype=torch.bool))
         self._pictures: task.TargetPictures | None = None     # the targets' image layers, drawn once per episode
         self.has_reset = False
+
+    def _load_perception(self, perception: Any):
+        if self.obs_type != "perceived":
+            if perception is not None:
+                raise ValueError(f"perception is read only by obs_type='perceived', got obs_type={self.obs_type!r}")
+            return None
+        from ..perception import Perception, PerceptionError
+        if perception is None:
+            raise PerceptionError("obs_type='perceived' needs perception=PATH, a checkpoint of "
+                                  "python -m diffdlo.perception")
+        if not isinstance(perception, Perception):
+            return Perception.load(perception, self.device, image_size=self.image_size, n_nodes=self.params.n_nodes,
+                                   view_size=self.view_size)
+        for name, have in (("image_size", self.image_size), ("n_nodes", self.params.n_nodes),
+                           ("view_size", self.view_size)):
+            if getattr(perception, name) != have:
+                raise PerceptionError(f"the perception reads {name}={getattr(perception, name)}, the env has "
+                                      f"{name}={have}")
+        return perception.to(self.device)
 
     # ----------------------------------------------------------------- configuration and state
     @property
@@ -179,7 +205,7 @@ class BatchedShapeControl:
         if state is None:
             s.info.update(task.task_metrics(s.pos, s.target, self.success_tol))
         self._state = s
-        self._pictures = None
+        self._pictures, self._seen_target = None, None
         self.has_reset = True
 
     def _mask(self, mask: Any) -> torch.Tensor:
@@ -254,6 +280,9 @@ class BatchedShapeControl:
             self._pictures.coverage[ids] = fresh.coverage
             if fresh.end is not None:
                 self._pictures.end[ids] = fresh.end
+            if self._seen_target is not None:
+                pictures = task.observe("image", start, s.target[ids], self.image_size, self.view_size, fresh)
+                self._seen_target[ids] = self.perception.read(pictures["target_image"], rope=False)
 
     def decode(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, A) clipped actions in [0, 1] (sim dtype) -> grasped node (B,) int64 and drag (B, 2) [m]."""
@@ -331,9 +360,14 @@ class BatchedShapeControl:
         """The current observation of every env (diffdlo.task.observe): a dict of (B, ...) tensors, or a (B, N, 2)
         tensor for obs_type="distance"."""
         s = self._state
-        if self.obs_type in ("image", "image_single") and self._pictures is None:
+        if self.obs_type in ("image", "image_single", "perceived") and self._pictures is None:
             self._pictures = task.target_pictures(s.target, self.image_size, self.view_size, self.mark_end)
-        return task.observe(self.obs_type, s.pos, s.target, self.image_size, self.view_size, self._pictures)
+        if self.obs_type != "perceived":
+            return task.observe(self.obs_type, s.pos, s.target, self.image_size, self.view_size, self._pictures)
+        pictures = task.observe("image", s.pos, s.target, self.image_size, self.view_size, self._pictures)
+        if self._seen_target is None:
+            self._seen_target = self.perception.read(pictures["target_image"], rope=False)
+        return self.perception.perceive(pictures, target=self._seen_target)
 
     def render(self, size: int = RENDER_SIZE) -> torch.Tensor:
         """(B, size, size, 3) uint8 pictures of the ropes (red) over their targets (blue), for people."""

@@ -1,0 +1,141 @@
+"""Perception (diffdlo/perception.py): training lowers the error, refinement inverts the renderer, checkpoints are
+safe and named, the env's "perceived" observation is read from pictures only, and a learner trains on it."""
+import argparse
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import diffdlo
+from agents import ppo
+from agents.config import load_config
+from agents.envs import make_env
+from agents.evaluation import evaluate
+from diffdlo.envs import BatchedShapeControl
+from diffdlo.perception import (Perception, PerceptionError, PerceptionNet, TrainConfig, held_out, main, node_error,
+                                refine, render_uint8, sample_shapes, train)
+
+PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """A perception of the 6-node rope at 32 px, trained for 150 steps of 32 pictures (4800 pictures)."""
+    out = tmp_path_factory.mktemp("perception")
+    p = dataclasses.replace(diffdlo.load_params(), **PO)
+    cfg = TrainConfig(image_size=32, steps=150, batch=32, pool=64, eval_pictures=32, eval_every=75, refine_iters=0,
+                      lr=2e-3)
+    torch.manual_seed(0)
+    before = Perception(PerceptionNet(32, p.n_nodes, 1.0), p.rest_length, 0)
+    test = held_out(p, cfg, diffdlo.Simulator(p), 1.0)
+    with torch.no_grad():
+        untrained = float(node_error(before.net(test["rope_images"]), test["ropes"]).mean())
+    results = train(out, cfg, p, progress=False)
+    return out, p, untrained, results
+
+
+def test_training_lowers_the_held_out_error(tiny):
+    out, _, untrained, r = tiny
+    assert r["net_node_error_mm"] < 0.6 * 1000 * untrained, (r, untrained)
+    assert {"node_error_mm", "target_error_mm", "image_size", "train_images", "wall_s"} <= set(r)
+    assert r["image_size"] == 32 and r["train_images"] == 150 * 32
+    assert json.loads((out / "results.json").read_text())["node_error_mm"] == r["node_error_mm"]
+    rows = (out / "log.csv").read_text().splitlines()
+    assert len(rows) == 3                            # header + the evaluations at steps 75 and 150
+
+
+def test_refine_moves_nearby_nodes_onto_the_picture(params, one_thread):
+    g = torch.Generator().manual_seed(0)
+    truth = sample_shapes(8, params, g, None).float()
+    pictures = render_uint8(truth, 64, 1.0)
+    start = truth + 0.004 * torch.randn(truth.shape, generator=g)
+    done = refine(start, pictures, params.rest_length, 1.0, iters=30)
+    before, after = node_error(start, truth).mean(), node_error(done, truth).mean()
+    assert after < 0.6 * before, (before, after)
+
+
+def test_checkpoint_round_trip_and_named_refusals(tiny, tmp_path):
+    out, p, _, _ = tiny
+    perception = Perception.load(out)
+    pictures = render_uint8(sample_shapes(4, p, torch.Generator().manual_seed(3), None).float(), 32, 1.0)
+    again = Perception.load(out / "perception.pt")
+    assert torch.equal(perception.read(pictures), again.read(pictures))
+    with pytest.raises(PerceptionError, match="not found"):
+        Perception.load(tmp_path / "missing.pt")
+    torch.save({"weights": torch.zeros(1)}, tmp_path / "other.pt")
+    with pytest.raises(PerceptionError, match="not a perception checkpoint"):
+        Perception.load(tmp_path / "other.pt")
+    torch.save({"format": "x", "code": argparse.Namespace(run="anything")}, tmp_path / "pickled.pt")
+    with pytest.raises(PerceptionError, match="cannot be read"):          # weights_only: no object is rebuilt
+        Perception.load(tmp_path / "pickled.pt")
+    with pytest.raises(PerceptionError, match="image_size=32, the pictures have image_size=64"):
+        Perception.load(out, image_size=64)
+    with pytest.raises(PerceptionError, match=r"\(B, 32, 32, 3\) uint8"):
+        perception.read(torch.zeros(1, 64, 64, 3, dtype=torch.uint8))
+
+
+@pytest.mark.parametrize("size", [48, 8, 100])
+def test_bad_image_sizes_are_named(size, tmp_path, capsys):
+    with pytest.raises(PerceptionError, match=f"got {size}"):
+        PerceptionNet(size, 6, 1.0)
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path / "p"), "--image-size", str(size)])
+    assert "--image-size: image_size must be 8 times a power of two" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
+
+
+def test_env_perceived_observation_is_read_from_the_pictures_only(tiny):
+    out, p, _, _ = tiny
+    perception = Perception.load(out)
+    kw = dict(num_envs=3, params=p, image_size=32, target="random")
+    env = BatchedShapeControl(obs_type="perceived", perception=out, **kw)
+    pictures_only = BatchedShapeControl(obs_type="image", mark_end=True, **kw)
+    obs, pics = env.reset(seed=7)[0], pictures_only.reset(seed=7)[0]
+    assert set(obs) == {"node_poses", "target_poses"}
+    seen = perception.perceive(pics)
+    for k in obs:
+        assert torch.equal(obs[k], seen[k]), k
+    true_pos = env.get_state(generators=False).pos
+    assert not torch.allclose(obs["node_poses"], true_pos.float(), atol=1e-4)    # what was read, not the state
+    action = torch.rand(3, 3, generator=torch.Generator().manual_seed(0))
+    obs = env.step(action)[0]
+    pics = pictures_only.step(action)[0]
+    assert torch.equal(obs["node_poses"], perception.read(pics["image"]))
+    with pytest.raises(PerceptionError, match="needs perception=PATH"):
+        BatchedShapeControl(obs_type="perceived", **kw)
+    with pytest.raises(PerceptionError, match="image_size=32, the pictures have image_size=64"):
+        BatchedShapeControl(obs_type="perceived", perception=out, **dict(kw, image_size=64))
+
+
+def test_a_tiny_perceived_task_learns_and_acts_from_pixels_alone(tiny, tmp_path):
+    """PPO on obs "perceived" (points read from the pictures by the tiny perception) learns the one-move task; its
+    trained policy, fed the perception's reading of pictures from an env that shows pictures only, acts exactly as
+    it does in training: no simulator state reaches the acting network."""
+    out, p, _, _ = tiny
+    sim = diffdlo.Simulator(p)
+    start = sim.move(sim.target_shape("horizontal")[None], torch.tensor([5]), torch.tensor([[0.0, 0.1]]))[0]
+    np.save(tmp_path / "start.npy", start.numpy())
+    common = dict(target="horizontal", start=str(tmp_path / "start.npy"), param_overrides=PO, max_steps=3,
+                  success_tol=0.02, eval_episodes=32, num_envs=8, checkpoint_every=10**9, obs="perceived",
+                  perception=str(out), image_size=32)
+    cfg = load_config(ppo.PPOConfig, "ppo", dict(common, total_steps=3072, eval_every=1024, n_steps=32,
+                                                 batch_size=64, n_epochs=4, lr=1e-3))
+    env = make_env(cfg.task, cfg.run, cfg.task.cable_params(), 32)
+    g = torch.Generator().manual_seed(0)
+    random_res = evaluate(lambda o, d: torch.rand(32, 3, generator=g), env, 64, seed=123)
+    res = ppo.train(cfg, tmp_path / "ppo", progress=False)
+    assert res["success_rate"] >= random_res["success_rate"] + 0.5, (res["success_rate"], random_res)
+
+    from agents.policy import load_policy
+    policy = load_policy(tmp_path / "ppo")
+    perceived = BatchedShapeControl(num_envs=4, obs_type="perceived", perception=out, params=p, image_size=32,
+                                    target="random")
+    pictures_only = BatchedShapeControl(num_envs=4, obs_type="image", mark_end=True, params=p, image_size=32,
+                                        target="random")
+    reading, act = Perception.load(out), policy.batched()
+    for seed in (1, 2):
+        obs = perceived.reset(seed=seed)[0]
+        from_pixels = reading.perceive(pictures_only.reset(seed=seed)[0])
+        assert torch.equal(act(obs, True), act(from_pixels, True))
