@@ -110,8 +110,8 @@ class PlaNetConfig:
         if self.plan_objective not in ("reward", "shape"):
             raise ValueError(f"plan_objective must be 'reward' or 'shape', got {self.plan_objective!r}")
         if self.plan_objective == "shape" and self.task.obs not in ("points", "distance", "perceived"):
-            raise ValueError("plan_objective 'shape' needs points, distance or perceived observations (it decodes node "
-                             "positions)")
+            raise ValueError("plan_objective 'shape' needs points or distance observations, or perceived points (it "
+                             "decodes node positions)")
         check_types(self)
         for key in ("model_hidden", "cnn_channels", "deconv_channels"):
             check_layer_sizes(key, getattr(self, key))

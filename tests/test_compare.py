@@ -102,8 +102,13 @@ def test_grid_is_data_and_filters_work(tmp_path):
     for c in sel:                                                 # the baselines keep SB3's settings explicitly
         preset = c["argv"][c["argv"].index("--preset") + 1] if "--preset" in c["argv"] else "tuned"
         assert preset == ("tuned" if c["variant"] == "tuned" else "sb3-default")
-    img, = compare.build_cells(full, tmp_path, methods=["ppo"], variants=["tuned_image"], targets=["random"], seeds=[0])
+    img, = compare.build_cells(full, tmp_path, methods=["ppo"], variants=["image_e2e"], targets=["random"], seeds=[0])
     assert img["argv"][img["argv"].index("--preset") + 1] == "image"        # pictures: params/ppo-image.yaml
+    for method in ("ppo", "sac", "planet", "cem"):                          # the perception rows read the pictures
+        cell, = compare.build_cells(full, tmp_path, methods=[method], variants=["tuned_image"], targets=["random"],
+                                    seeds=[0])
+        assert cell["argv"][cell["argv"].index("--perception") + 1] == "models/perception64.pt"
+        assert (Path(__file__).parents[1] / "models/perception64.pt").is_file()
     # each seed seeds the learner, its evaluation starts, and the planners' starts and generators
     c = sel[0]
     assert c["argv"][c["argv"].index("--seed") + 1] == "3" and "eval_seed=13000" in c["argv"]

@@ -3,6 +3,9 @@ safe and named, the env's "perceived" observation is read from pictures only, an
 import argparse
 import dataclasses
 import json
+import warnings
+
+import gymnasium as gym
 
 import numpy as np
 import pytest
@@ -107,6 +110,15 @@ def test_env_perceived_observation_is_read_from_the_pictures_only(tiny):
         BatchedShapeControl(obs_type="perceived", **kw)
     with pytest.raises(PerceptionError, match="image_size=32, the pictures have image_size=64"):
         BatchedShapeControl(obs_type="perceived", perception=out, **dict(kw, image_size=64))
+
+
+def test_gymnasium_check_env_on_perceived_points(tiny):
+    from gymnasium.utils.env_checker import check_env
+    out, p, _, _ = tiny
+    env = gym.make(diffdlo.envs.ENV_ID, obs_type="perceived", perception=str(out), params=p, image_size=32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped)
 
 
 def test_a_tiny_perceived_task_learns_and_acts_from_pixels_alone(tiny, tmp_path):
