@@ -93,10 +93,11 @@ class TaskOptions:
     curve_max_turn_deg: float = 12.0      # target "random_curve": the largest turn per node [deg]
     mark_end: bool = False                # images: a dot on node 0 of rope and target (env option)
     perception: str | None = None         # obs "perceived": a checkpoint of python -m diffdlo.perception
+    perception_refine: int | None = None  # its refinement steps per picture (None: the checkpoint's; 0: net alone)
 
     def check(self) -> None:
         check_types(self)
-        check_ranges(self, {"max_steps": "[1, inf)", "success_tol": "(0, inf)", "image_size": "[8, inf)",
+        check_ranges(self, {"max_steps": "[1, inf)", "perception_refine": "[0, inf)", "success_tol": "(0, inf)", "image_size": "[8, inf)",
                             "success_bonus": "(-inf, inf)", "step_penalty": "(-inf, inf)",
                             "exit_penalty": "(-inf, inf)", "curve_max_turn_deg": "[0, 90]"})
         _choice("obs type", self.obs, OBS_TYPES)
@@ -105,6 +106,8 @@ class TaskOptions:
         _choice("on_exit", self.on_exit, EXIT_RULES)
         if not isinstance(self.mark_end, bool):
             raise ValueError(f"mark_end must be true or false, got {self.mark_end!r}")
+        if self.obs != "perceived" and self.perception_refine is not None:
+            raise ValueError(f"perception_refine is read only by obs 'perceived', got obs {self.obs!r}")
         if (self.obs == "perceived") != (self.perception is not None):
             raise ValueError(f"obs 'perceived' and perception=PATH go together (a checkpoint of python -m "
                              f"diffdlo.perception), got obs {self.obs!r} and perception {self.perception!r}")

@@ -73,7 +73,8 @@ def env_kwargs(task: TaskOptions, params: CableParams) -> dict[str, Any]:
                 max_steps=task.max_steps, success_tol=task.success_tol, params=params, image_size=task.image_size,
                 success_bonus=task.success_bonus, step_penalty=task.step_penalty, on_exit=task.on_exit,
                 exit_penalty=task.exit_penalty, curve_max_turn_deg=task.curve_max_turn_deg, mark_end=task.mark_end,
-                start=task.start, perception=task.perception, max_episode_steps=task.max_steps or params.max_episode_steps)
+                start=task.start, perception=task.perception,
+                perception_refine=task.perception_refine, max_episode_steps=task.max_steps or params.max_episode_steps)
 
 
 def make_env(task: TaskOptions, run: RunOptions, params: CableParams, num_envs: int) -> TrainEnv:

@@ -162,6 +162,8 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
     parser.add_argument("--perception", default=None, metavar="PATH",
                         help="plan from the rope and target as this perception checkpoint reads them from the env's "
                              "pictures (python -m diffdlo.perception), not from the simulator's state")
+    parser.add_argument("--perception-refine", type=int, default=None, metavar="STEPS",
+                        help="with --perception: its refinement steps per picture (default: the checkpoint's)")
     parser.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in --out")
     parser.add_argument("--no-gif", action="store_true", help="skip the GIFs")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -228,7 +230,10 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     if args.perception is not None:
         from diffdlo.perception import Perception, PerceptionError
         try:
-            perception = Perception.load(args.perception, n_nodes=real.n_nodes, view_size=env.view_size)
+            if args.perception_refine is not None and args.perception_refine < 0:
+                raise PerceptionError(f"--perception-refine must be >= 0, got {args.perception_refine}")
+            perception = Perception.load(args.perception, refine_iters=args.perception_refine, n_nodes=real.n_nodes,
+                                         view_size=env.view_size)
         except PerceptionError as exc:
             parser.error(f"--perception: {exc}")
     label = task.target_label(args.target)

@@ -106,6 +106,12 @@ def test_env_perceived_observation_is_read_from_the_pictures_only(tiny):
     obs = env.step(action)[0]
     pics = pictures_only.step(action)[0]
     assert torch.equal(obs["node_poses"], perception.read(pics["image"]))
+    with pytest.raises(ValueError, match="perception_refine must be None or an integer >= 0, got -1"):
+        BatchedShapeControl(obs_type="perceived", perception=out, perception_refine=-1, **kw)
+    with pytest.raises(ValueError, match="perception_refine are read only by obs_type='perceived'"):
+        BatchedShapeControl(obs_type="points", perception_refine=3, **kw)
+    refined = BatchedShapeControl(obs_type="perceived", perception=out, perception_refine=5, **kw)
+    assert refined.perception.refine_iters == 5 and env.perception.refine_iters == 0
     with pytest.raises(PerceptionError, match="needs perception=PATH"):
         BatchedShapeControl(obs_type="perceived", **kw)
     with pytest.raises(PerceptionError, match="image_size=32, the pictures have image_size=64"):

@@ -79,6 +79,8 @@ class BatchedShapeControl:
         and its reversal look different (default False: the thesis's pictures, where they do not).
       perception: obs_type="perceived" only: a perception checkpoint path (``python -m diffdlo.perception``) or a
         ``diffdlo.perception.Perception``, made for these pictures (image_size, view_size, n_nodes).
+      perception_refine: analysis-by-synthesis steps after the network per picture (None: the checkpoint's; 0: the
+        network alone, the cheap reading for hundreds of ropes per step).
       start: None (a random start shape, settled: thesis model.free) or a fixed (N, 2) start shape placed as is
         after every reset (custom easy tasks): finite, with no two consecutive nodes closer than 10% of the rest
         length (ValueError naming the nodes otherwise).
@@ -93,7 +95,8 @@ class BatchedShapeControl:
                  dtype: torch.dtype = torch.float32, backend: str = "auto", success_bonus: float | None = None,
                  step_penalty: float = 0.0, on_exit: str = "truncate", exit_penalty: float = 0.0,
                  curve_max_turn_deg: float = CURVE_MAX_TURN_DEG, mark_end: bool = False, start: Any = None,
-                 max_episode_steps: int | None = None, action_scale: float | None = None, perception: Any = None):
+                 max_episode_steps: int | None = None, action_scale: float | None = None, perception: Any = None,
+                 perception_refine: int | None = None):
         p, self.rules = checked_options(
             num_envs, obs_type, action_type, reward, max_steps, success_tol, params, image_size, view_size,
             success_bonus, step_penalty, on_exit, exit_penalty, curve_max_turn_deg, max_episode_steps=max_episode_steps,
@@ -106,7 +109,7 @@ class BatchedShapeControl:
         self.image_size, self.view_size = int(image_size), float(view_size)
         self.sim = Simulator(p, device=device, dtype=dtype, backend=backend)
         self.device, self.dtype = self.sim.device, dtype
-        self.perception = self._load_perception(perception)
+        self.perception = self._load_perception(perception, perception_refine)
         self._seen_target: torch.Tensor | None = None          # the perceived targets, read once per episode
         self._named = {name: target_shape(name, p, self.device, dtype) for name in TARGET_NAMES}
         self.start = None if start is None else self._check_start(start)
@@ -127,18 +130,23 @@ class BatchedShapeControl:
         self._pictures: task.TargetPictures | None = None     # the targets' image layers, drawn once per episode
         self.has_reset = False
 
-    def _load_perception(self, perception: Any):
+    def _load_perception(self, perception: Any, refine: Any):
         if self.obs_type != "perceived":
-            if perception is not None:
-                raise ValueError(f"perception is read only by obs_type='perceived', got obs_type={self.obs_type!r}")
+            if perception is not None or refine is not None:
+                raise ValueError(f"perception and perception_refine are read only by obs_type='perceived', got "
+                                 f"obs_type={self.obs_type!r}")
             return None
+        if refine is not None and (not isinstance(refine, (int, np.integer)) or isinstance(refine, bool) or refine < 0):
+            raise ValueError(f"perception_refine must be None or an integer >= 0, got {refine!r}")
         from ..perception import Perception, PerceptionError
         if perception is None:
             raise PerceptionError("obs_type='perceived' needs perception=PATH, a checkpoint of "
                                   "python -m diffdlo.perception")
         if not isinstance(perception, Perception):
-            return Perception.load(perception, self.device, image_size=self.image_size, n_nodes=self.params.n_nodes,
-                                   view_size=self.view_size)
+            return Perception.load(perception, self.device, refine_iters=refine, image_size=self.image_size,
+                                   n_nodes=self.params.n_nodes, view_size=self.view_size)
+        if refine is not None:
+            perception = Perception(perception.net, perception.rest_length, refine, perception.meta)
         for name, have in (("image_size", self.image_size), ("n_nodes", self.params.n_nodes),
                            ("view_size", self.view_size)):
             if getattr(perception, name) != have:
