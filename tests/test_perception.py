@@ -157,3 +157,29 @@ def test_a_tiny_perceived_task_learns_and_acts_from_pixels_alone(tiny, tmp_path)
         obs = perceived.reset(seed=seed)[0]
         from_pixels = reading.perceive(pictures_only.reset(seed=seed)[0])
         assert torch.equal(act(obs, True), act(from_pixels, True))
+
+
+def test_training_resumes_exactly(tmp_path, monkeypatch):
+    import diffdlo.perception as perception_module
+    p = dataclasses.replace(diffdlo.load_params(), **PO)
+    cfg = TrainConfig(image_size=32, steps=8, batch=8, pool=16, eval_pictures=8, eval_every=4, refine_iters=2)
+    train(tmp_path / "a", cfg, p, progress=False)
+    real, calls = perception_module.evaluate, []
+
+    def die_at_the_second_evaluation(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(perception_module, "evaluate", die_at_the_second_evaluation)
+    with pytest.raises(KeyboardInterrupt):
+        train(tmp_path / "b", cfg, p, progress=False)
+    monkeypatch.setattr(perception_module, "evaluate", real)
+    assert not (tmp_path / "b" / "perception.pt").exists()
+    train(tmp_path / "b", cfg, p, progress=False, resume=True)
+    a, b = (torch.load(tmp_path / x / "perception.pt", weights_only=True)["state_dict"] for x in "ab")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert (tmp_path / "a" / "log.csv").read_text().splitlines()[1:] != []
+    with pytest.raises(PerceptionError, match="--resume"):
+        train(tmp_path / "b", dataclasses.replace(cfg, lr=0.5), p, progress=False, resume=True)
