@@ -139,6 +139,8 @@ def refine(points: torch.Tensor, images: torch.Tensor, rest_length: float, view_
     Adam on the mean squared pixel difference plus ``length_weight`` x the links' squared relative stretch (the
     settled rope is at its rest length to a fraction of a millimetre), steps of ``lr_px`` pixels decaying to 0.
     Returns the refined points (no gradient)."""
+    if iters <= 0:
+        return points.detach()
     size = images.shape[1]
     px = view_size / size
     target = images.to(torch.float32)

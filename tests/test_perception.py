@@ -57,6 +57,7 @@ def test_refine_moves_nearby_nodes_onto_the_picture(params, one_thread):
     done = refine(start, pictures, params.rest_length, 1.0, iters=30)
     before, after = node_error(start, truth).mean(), node_error(done, truth).mean()
     assert after < 0.6 * before, (before, after)
+    assert torch.equal(refine(start, pictures, params.rest_length, 1.0, iters=0), start)     # the net alone
 
 
 def test_checkpoint_round_trip_and_named_refusals(tiny, tmp_path):
