@@ -95,13 +95,13 @@ def test_grid_is_data_and_filters_work(tmp_path):
     assert not any(c["target"] in heldout for c in cells if c["kind"] == "agent")     # no learner trains on them
     arc = compare.build_cells(full, tmp_path, methods=["cem"], targets=["arc"], seeds=[0])[0]
     assert arc["argv"][arc["argv"].index("--target") + 1] == "planners/targets/arc.npy"
-    assert {c["variant"] for c in cells if c["method"] == "sac"} == {"tuned", "points", "points_utd1", "image",
-                                                                          "abs_diff", "delta_gain"}
+    assert {c["variant"] for c in cells if c["method"] == "sac"} == {"tuned", "tuned_image", "points", "points_utd1",
+                                                                          "image", "abs_diff", "delta_gain"}
     sel = compare.build_cells(full, tmp_path, methods=["sac"], targets=["random"], seeds=[3])
-    assert len(sel) == 6 and all(c["seed"] == 3 for c in sel)
+    assert len(sel) == 7 and all(c["seed"] == 3 for c in sel)
     for c in sel:                                                 # the baselines keep SB3's settings explicitly
         preset = c["argv"][c["argv"].index("--preset") + 1] if "--preset" in c["argv"] else "tuned"
-        assert preset == ("tuned" if c["variant"] == "tuned" else "sb3-default")
+        assert preset == ("tuned" if c["variant"] in ("tuned", "tuned_image") else "sb3-default")
     img, = compare.build_cells(full, tmp_path, methods=["ppo"], variants=["image_e2e"], targets=["random"], seeds=[0])
     assert img["argv"][img["argv"].index("--preset") + 1] == "image"        # pictures: params/ppo-image.yaml
     for method in ("ppo", "sac", "planet", "cem"):                          # the perception rows read the pictures
