@@ -90,9 +90,17 @@ def requested_options(args: argparse.Namespace, ap: argparse.ArgumentParser) -> 
     return overrides
 
 
+# The preset a picture observation takes when none is named: the default one cannot read pictures.
+IMAGE_PRESETS = {"planet": "rssm"}
+
+
 def config_from_args(cls, algo: str, args: argparse.Namespace, ap: argparse.ArgumentParser):
     if args.config and args.preset:
         ap.error("give --config or --preset, not both")
+    if not (args.config or args.preset) and args.obs in ("image", "image_single") and algo in IMAGE_PRESETS:
+        args.preset = IMAGE_PRESETS[algo]
+        print(f"{algo}: --obs {args.obs} takes the preset {args.preset!r} (the default one reads points)",
+              file=sys.stderr)
     try:
         return config_lib.load_config(cls, args.config or config_lib.preset_path(algo, args.preset),
                                       requested_options(args, ap))

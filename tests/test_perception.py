@@ -184,3 +184,25 @@ def test_training_resumes_exactly(tmp_path, monkeypatch):
     assert (tmp_path / "a" / "log.csv").read_text().splitlines()[1:] != []
     with pytest.raises(PerceptionError, match="--resume"):
         train(tmp_path / "b", dataclasses.replace(cfg, lr=0.5), p, progress=False, resume=True)
+
+
+@pytest.mark.parametrize("algo", ["sac", "ppo", "planet"])
+def test_obs_image_alone_gives_a_config_that_reads_pictures(algo, tmp_path, capsys):
+    """``python -m agents.<algo> --obs image`` needs no other flag: the points-only input options of the tuned
+    presets follow it (features raw, no normalization), and PlaNet takes its picture preset (the RSSM)."""
+    import importlib
+
+    from agents.cli import config_from_args, make_parser
+    module = importlib.import_module(f"agents.{algo}")
+    cls = {"sac": "SACConfig", "ppo": "PPOConfig", "planet": "PlaNetConfig"}[algo]
+    ap = make_parser(f"python -m agents.{algo}", None)
+    cfg = config_from_args(getattr(module, cls), algo, ap.parse_args(["--obs", "image", "--out", str(tmp_path)]), ap)
+    assert cfg.task.obs == "image"
+    if algo == "planet":
+        assert cfg.model == "rssm" and "takes the preset 'rssm'" in capsys.readouterr().err
+    else:
+        assert cfg.inputs.features == "raw" and cfg.inputs.normalize_obs is False
+    with pytest.raises(SystemExit):           # asked for explicitly, the points-only setting is still refused
+        config_from_args(getattr(module, cls), algo, ap.parse_args(
+            ["--obs", "image", "--out", str(tmp_path), "--set", "features=relative"] if algo != "planet" else
+            ["--obs", "image", "--out", str(tmp_path), "--preset", "tuned"]), ap)
