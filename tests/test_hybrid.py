@@ -170,7 +170,7 @@ def test_presets_tuned_is_the_default_and_sb3_default_keeps_the_old_settings(alg
 
 @pytest.mark.parametrize("bad,message", [(dict(policy="mixed"), "unknown policy 'mixed'"),
                                          (dict(action="pixel"), "policy 'hybrid' chooses a node"),
-                                         (dict(obs="image"), "features 'relative' need obs"),
+                                         (dict(obs="image", features="relative"), "features 'relative' need obs"),
                                          (dict(on_exit="bounce"), "unknown on_exit 'bounce'"),
                                          (dict(features="raw"), "normalize_obs needs features 'relative'")])
 def test_bad_tuned_config_values_are_named(bad, message):
