@@ -113,7 +113,7 @@ LEARNER_CASES = [
     ("planet", ["--set", "updates_per_train=0"], "updates_per_train must be in [1, inf), got 0"),
     ("planet", ["--set", "min_std=0"], "min_std must be in (0, inf), got 0"),
     ("planet", ["--set", "model_hidden=[200, -1]"], "positive hidden sizes, got 5 and [200, -1]"),
-    ("planet", ["--obs", "image"], "model 'ensemble' predicts node positions from node actions"),
+    ("planet", ["--preset", "tuned", "--obs", "image"], "model 'ensemble' predicts node positions from node actions"),
 ]
 
 
