@@ -98,9 +98,9 @@ class Terminated(KeyboardInterrupt):
 
 @contextmanager
 def signals_stop_compare() -> Iterator[None]:
-    """While inside: SIGTERM and SIGHUP raise Terminated in the main thread (SIGINT raises KeyboardInterrupt as
-    usual); the previous handlers come back on leaving. Only the main thread can install handlers: elsewhere a
-    no-op."""
+    """While inside: SIGTERM and SIGHUP raise Terminated in the main thread and SIGINT raises KeyboardInterrupt,
+    also where the process was started with SIGINT ignored (a shell's background job: ``cmd &``); the previous
+    handlers come back on leaving. Only the main thread can install handlers: elsewhere a no-op."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -109,6 +109,7 @@ def signals_stop_compare() -> Iterator[None]:
         raise Terminated(signal.Signals(signum).name)
 
     old = {s: signal.signal(s, raise_terminated) for s in (signal.SIGTERM, signal.SIGHUP)}
+    old[signal.SIGINT] = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         yield
     finally:
