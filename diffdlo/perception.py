@@ -151,13 +151,17 @@ def refine(points: torch.Tensor, images: torch.Tensor, rest_length: float, view_
         with torch.enable_grad():
             img = draw(x, size, view_size, rope)
             pix = ((img - target) / 255.0).pow(2).flatten(1).sum(1)
-            stretch = ((x[:, 1:] - x[:, :-1]).norm(dim=-1) / rest_length - 1).pow(2).sum(1)
+            link = ((x[:, 1:] - x[:, :-1]).pow(2).sum(-1) + 1e-12).sqrt()     # finite gradient at length 0
+            stretch = (link / rest_length - 1).pow(2).sum(1)
             loss = (pix + length_weight * 100 * stretch).sum()
         opt.zero_grad()
         loss.backward()
+        x.grad = torch.nan_to_num(x.grad, nan=0.0, posinf=0.0, neginf=0.0)   # a pixel exactly on a node: sqrt'(0)
         opt.step()
         sched.step()
-    return x.detach()
+    out = x.detach()
+    bad = ~torch.isfinite(out).all(-1).all(-1)
+    return torch.where(bad[:, None, None], points.detach().to(out.dtype), out)
 
 
 # ====================================================================== the perception a run loads

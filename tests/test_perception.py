@@ -206,3 +206,12 @@ def test_obs_image_alone_gives_a_config_that_reads_pictures(algo, tmp_path, caps
         config_from_args(getattr(module, cls), algo, ap.parse_args(
             ["--obs", "image", "--out", str(tmp_path), "--set", "features=relative"] if algo != "planet" else
             ["--obs", "image", "--out", str(tmp_path), "--preset", "tuned"]), ap)
+
+
+def test_refine_stays_finite_when_two_nodes_coincide(params):
+    g = torch.Generator().manual_seed(1)
+    truth = sample_shapes(4, params, g, None).float()
+    start = truth.clone()
+    start[:, 3] = start[:, 2]                      # a link of length 0: the norm's gradient is NaN there
+    done = refine(start, render_uint8(truth, 64, 1.0), params.rest_length, 1.0, iters=5)
+    assert torch.isfinite(done).all()
