@@ -161,6 +161,10 @@ def refine(points: torch.Tensor, images: torch.Tensor, rest_length: float, view_
         sched.step()
     out = x.detach()
     bad = ~torch.isfinite(out).all(-1).all(-1)
+    if bool(bad.any()):
+        import warnings
+        warnings.warn(f"perception: refinement diverged on {int(bad.sum())} of {len(bad)} pictures; their "
+                      "network reading is returned", RuntimeWarning, stacklevel=2)
     return torch.where(bad[:, None, None], points.detach().to(out.dtype), out)
 
 
@@ -464,6 +468,8 @@ def main(argv: list[str] | None = None) -> int:
         out = Path(args.out)
         if not args.resume:
             check_fresh_out(out, args.overwrite, "an earlier perception")
+        elif not (out / "train_state.pt").is_file():
+            raise ValueError(f"--resume: {out / 'train_state.pt'} not found (nothing to continue in {str(out)!r})")
     except (ParamsError, FileExistsError, ValueError) as exc:
         ap.error(str(exc))
     if args.threads:
