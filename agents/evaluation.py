@@ -14,17 +14,20 @@ import torch
 from agents.config import RunOptions, TaskOptions
 from agents.envs import TrainEnv, make_env
 from diffdlo.envs import BatchedShapeControl
-from diffdlo.files import write_json_atomic
+from diffdlo.files import shapes_record, write_json_atomic
 from diffdlo.params import CableParams
 from diffdlo.task import target_label
 
-EPISODE_KEYS = ("success", "steps", "final_error", "target_name")   # an episode's record in results.json
+# an episode's record in results.json; start_error (the shape error after reset) identifies the start shape, so a
+# report can check that two methods' episode i are the same episode (planners record it too)
+EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name")
 
 # ====================================================================== evaluation
 @torch.no_grad()
 def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | BatchedShapeControl, n_episodes: int,
              deterministic: bool = True, seed: int = 10_000) -> dict[str, Any]:
-    """Run ``n_episodes`` full episodes (in waves of env.num_envs, wave w reset with seed + w * num_envs).
+    """Run ``n_episodes`` full episodes (in waves of env.num_envs, wave w reset with seed + w * num_envs: episode i
+    starts from one rope's ``reset(seed=seed + i)``, as a planner's episode i of ``--seed seed``).
 
     ``policy(obs, deterministic) -> (B, A) actions``. Returns success_rate, mean_reward, mean_length,
     mean_final_error, episodes [{success, steps, final_error, return, target_name}], final ropes and targets.
@@ -32,11 +35,13 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
     env = env if isinstance(env, TrainEnv) else TrainEnv(env)
     b = env.num_envs
     t0 = time.perf_counter()
-    episodes, ropes, targets = [], [], []
+    episodes, ropes, targets, starts = [], [], [], []
     wave = 0
     while len(episodes) < n_episodes:
         obs = env.reset(seed=seed + wave * b)
         wave += 1
+        start_err = env.core.info()["shape_error"].detach().cpu().double()
+        start_pos = env.core.get_state(generators=False).pos.detach().cpu()
         active = torch.ones(b, dtype=torch.bool)
         ret = torch.zeros(b, dtype=torch.float64)
         final_err = torch.zeros(b)
@@ -59,15 +64,18 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
         state = env.core.get_state(generators=False)
         for i in range(min(b, n_episodes - len(episodes))):
             episodes.append({"success": bool(success[i]), "steps": int(steps[i]),
-                             "final_error": float(final_err[i]), "return": float(ret[i]),
+                             "final_error": float(final_err[i]), "start_error": float(start_err[i]),
+                             "return": float(ret[i]),
                              "target_name": state.target_names[i]})
             ropes.append(final_pos[i].detach().cpu())
+            starts.append(start_pos[i])
             targets.append(state.target[i].detach().cpu())
     return {"success_rate": float(np.mean([e["success"] for e in episodes])),
             "mean_reward": float(np.mean([e["return"] for e in episodes])),
             "mean_length": float(np.mean([e["steps"] for e in episodes])),
             "mean_final_error": float(np.mean([e["final_error"] for e in episodes])),
             "episodes": episodes, "ropes": torch.stack(ropes), "targets": torch.stack(targets),
+            "starts": torch.stack(starts),
             "s_per_episode": (time.perf_counter() - t0) / len(episodes)}
 
 
@@ -94,9 +102,14 @@ def evaluate_heldout(policy: Callable[[Any, bool], torch.Tensor] | None, envs: d
     for label, (spec, env) in envs.items():
         r = evaluate(policy if policy_for is None else policy_for(env), env, run.eval_episodes, seed=run.eval_seed)
         out[label] = {"target": str(spec), "success_rate": r["success_rate"],
-                      "mean_final_error": r["mean_final_error"],
+                      "mean_final_error": r["mean_final_error"], "shapes": first_shapes(r),
                       "episodes": [{k: e[k] for k in EPISODE_KEYS} for e in r["episodes"]]}
     return out
+
+
+def first_shapes(result: dict[str, Any]) -> dict[str, list]:
+    """The first episode's start, final shape and target (results.json "shapes": the report's galleries)."""
+    return shapes_record(result["starts"][0], result["ropes"][0], result["targets"][0])
 
 
 def eval_row(result: dict[str, Any]) -> dict[str, float]:
@@ -120,6 +133,8 @@ def write_results(out: Path, method: str, task: TaskOptions, seed: int, result: 
                "mean_reward": result["mean_reward"], "mean_length": result["mean_length"],
                "eval_s_per_episode": result.get("s_per_episode"),
                "obs": task.obs, "action": task.action, "reward": task.reward}
+    if "starts" in result:
+        results["shapes"] = first_shapes(result)
     results.update(extra or {})
     if heldout:
         results["heldout"] = heldout

@@ -53,6 +53,14 @@ def write_json_atomic(path: Path | str, data: Any) -> None:
 
 
 # ====================================================================== an earlier run's folder
+def shapes_record(start: Any, final: Any, target: Any, decimals: int = 4) -> dict[str, list]:
+    """An episode's start shape, final shape and target ((N, 2) tensors) as lists rounded to ``decimals`` (0.1 mm at
+    4): what results.json keeps of one episode so that a report can draw it without the run (the galleries)."""
+    def points(t: Any) -> list:
+        return [[round(float(x), decimals), round(float(y), decimals)] for x, y in t.detach().cpu().tolist()]
+    return {"start": points(start), "final": points(final), "target": points(target)}
+
+
 def check_fresh_out(out: Path | str, overwrite: bool, what: str = "a run", flag: str = "--overwrite") -> None:
     """Refuse to start in a folder that already holds files (an earlier run's results), unless ``overwrite``.
     Raises FileExistsError naming the folder, what it holds and what to do."""

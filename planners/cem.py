@@ -189,8 +189,12 @@ class CEMPlanner:
         self.running_weight = running_weight
         self.sim_evals = 0
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
+        """A new episode; ``seed``: re-seed the sampling generator (an episode's plan then depends on its own seed
+        only, not on the episodes run before it in the same command)."""
         self.cem.reset()
+        if seed is not None:
+            self.cem.gen.manual_seed(int(seed))
 
     def plan(self, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """pos (N, 2), target (N, 2) -> the first action (3,) of the best plan, in [0, 1]."""

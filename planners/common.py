@@ -1,10 +1,14 @@
 """Shared receding-horizon (MPC) episode loop, CLI and results for the planners.
 
-A planner has ``name``, ``sim_evals`` (rope-moves it has simulated), ``reset()`` (new episode) and
+A planner has ``name``, ``sim_evals`` (rope-moves it has simulated), ``reset(seed)`` (new episode; its generator
+re-seeded with the episode's seed, so an episode's plan does not depend on the episodes before it) and
 ``plan(pos (N, 2), target (N, 2)) -> action (3,)`` (an env node action in [0, 1]^3); ``run_episode`` executes
 its first action in ``BatchedShapeControl`` and replans until success (shape_error < success_tol) or max_steps.
 Episode i starts from ``env.reset(seed=seed + i)``; with ``--target random`` or ``random_curve`` (a family in
 diffdlo.shapes.TARGET_FAMILIES) that reset also draws episode i's target, recorded under the episode in results.json.
+That is the learners' evaluation rule too (agents/evaluation.py: episode i of a one-rope or batched evaluation env
+reset with seed s is ``reset(seed=s + i)`` of one rope), so a planner and a learner evaluated with the same seed see
+the same start shapes and targets, episode by episode (tests/test_paired_episodes.py).
 
 Model mismatch: ``--params`` are the model's, the planner plans with a Simulator of those; ``--real-params`` and
 ``--real-scale`` give the "real" rope that the env moves and scores. The real rope must decode an action into the same
@@ -25,7 +29,7 @@ from tqdm import tqdm
 from diffdlo import task
 from diffdlo.checks import check_interval
 from diffdlo.envs import BatchedShapeControl
-from diffdlo.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic
+from diffdlo.files import OutBusyError, check_fresh_out, out_lock, shapes_record, write_json_atomic
 from diffdlo.params import CableParams, ParamsError, load_params
 from diffdlo.physics import PHYSICAL, physical_values, scaled_params   # what a scale may change
 from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
@@ -94,7 +98,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     pictures (the target once per episode), not the simulator's state; "seen_error_mm" records how far off they were
     (mean node distance, averaged over the moves)."""
     env.reset(seed=seed)
-    planner.reset()
+    planner.reset(seed=seed)
     state = env.get_state(generators=False)
     target, target_name = state.target[0], state.target_names[0]
     planned_target = target if perception is None else seen(target, perception, rope=False)
@@ -276,6 +280,7 @@ def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor |
         "episodes": records, "env_steps": steps, "wall_s": wall,
         "sim_evals": sum(e["sim_evals"] for e in episodes),
         "plan_s_per_step": plan_s / max(steps, 1), "max_steps": args.max_steps,
+        "shapes": shapes_record(episodes[0]["frames"][0], episodes[0]["frames"][-1], targets[0]),
         "config": {k: v for k, v in vars(args).items() if k not in ("out", "quiet")},
         **(extra or {}),
     }

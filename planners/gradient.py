@@ -37,8 +37,10 @@ class GradientPlanner:
         self.grad_norms: list[float] = []      # per Adam iteration: the largest per-row |dcost/du|
         self.last: dict = {}
 
-    def reset(self) -> None:
-        pass
+    def reset(self, seed: int | None = None) -> None:
+        """A new episode; ``seed``: re-seed the restarts' generator (as CEMPlanner.reset)."""
+        if seed is not None:
+            self.gen.manual_seed(int(seed))
 
     def episode_stats(self) -> dict:
         g = torch.tensor(self.grad_norms or [float("nan")])

@@ -17,7 +17,7 @@ class GreedyPlanner:
         self.sim, self.p = sim, sim.params
         self.sim_evals = 0
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:    # deterministic: nothing to re-seed
         pass
 
     def plan(self, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -56,39 +56,28 @@ def test_t_quantile_and_intervals_match_hand_computed():
     assert compare.wilson(0, 10)[1] == 0.0 and compare.wilson(0, 10)[2] == pytest.approx(0.277533, abs=1e-5)
 
 
-def test_random_target_names_are_what_the_env_draws_per_reset_seed():
-    from diffdlo.envs import BatchedShapeControl
-
-    env = BatchedShapeControl(1, target="random")
-    one_by_one = []
-    for i in range(8):
-        env.reset(seed=10000 + i)
-        one_by_one.append(env.get_state().target_names[0])
-    assert compare.random_target_names(10000, 8) == one_by_one
-    assert set(one_by_one) <= set(compare.NAMED) and len(set(one_by_one)) > 1
-
-
-def test_merged_random_cell_takes_each_episodes_target_from_its_run():
-    def part(name, success, **episode):
-        return {"method": "greedy", "target": name, "env_steps": 3, "wall_s": 1.0, "sim_evals": 0, "config": {},
-                "episodes": [{"success": success, "steps": 3, "plan_s": 0.5, **episode}]}
-
-    cell = {"dir": "d", "eval_seed": 10000, "subrun_targets": ["vertical", "diagonal"]}
-    # the first run's results predate "target_name": its --target ("target") stands for the episode's
-    parts = [part("vertical", True), part("diagonal", False, target_name="diagonal")]
-    merged = compare.merge_subruns(parts, cell)
-    assert merged["episode_targets"] == ["vertical", "diagonal"] and merged["target"] == "random"
-    assert merged["success_rate"] == 0.5 and merged["env_steps"] == 6 and merged["seed"] == 10000
-    assert merged["plan_s_per_step"] == pytest.approx(1.0 / 6) and "config" not in merged
-    with pytest.raises(RuntimeError, match="the env drew"):          # a run on another target than drawn
-        compare.merge_subruns([part("vertical", True), part("diagonal", False, target_name="horizontal")], cell)
-
-
 def test_grid_is_data_and_filters_work(tmp_path):
     full = compare.load_grid(quick=False)
     cells = compare.build_cells(full, tmp_path)
     assert len(full["seeds"]) >= 5
-    assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "planet", "apg"}
+    assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "pets", "planet", "apg"}
+    heldout = set(full["heldout"])
+    # honest names: the ensemble world model is PETS-style, PlaNet is the RSSM; both run agents.planet
+    pets, rssm = (compare.build_cells(full, tmp_path, methods=[m], targets=["random"], seeds=[0])[0]
+                  for m in ("pets", "planet"))
+    assert pets["argv"][1] == rssm["argv"][1] == "agents.planet"
+    assert "--preset" not in pets["argv"] and rssm["argv"][rssm["argv"].index("--preset") + 1] == "rssm"
+    assert "PETS" in compare.method_label(full, "pets") and "RSSM" in compare.method_label(full, "planet")
+    # the main grid: every main row on every main task it can run (learners train on random and random_curve and
+    # are evaluated on the held-out shapes), five seeds
+    main = {(m, v) for m, v in compare.main_rows(full)}
+    assert {m for m, _ in main} == {"greedy", "cem", "gradient", "sac", "ppo", "pets", "planet", "apg"}
+    for m, v in main:
+        tasks = {c["target"] for c in cells if (c["method"], c["variant"]) == (m, v)}
+        kind = full["methods"][m]["kind"]
+        assert tasks >= ({"random", "random_curve"} | (heldout if kind == "planner" else set())), (m, v)
+        if kind == "agent":
+            assert "eval_targets" in full["methods"][m]["variants"][v].get("set", {}), (m, v)
     heldout = set(full["heldout"])
     assert {"horizontal", "vertical", "diagonal", "antidiagonal", "random", "random_curve"} | heldout \
         == {c["target"] for c in cells}
@@ -97,6 +86,9 @@ def test_grid_is_data_and_filters_work(tmp_path):
     assert arc["argv"][arc["argv"].index("--target") + 1] == "planners/targets/arc.npy"
     assert {c["variant"] for c in cells if c["method"] == "sac"} == {"tuned", "tuned_image", "points", "points_utd1",
                                                                           "image", "abs_diff", "delta_gain"}
+    # a planner's random cell is one command, episode i on env.reset(seed=eval_seed + i) as the learners'
+    rnd, = compare.build_cells(full, tmp_path, methods=["cem"], variants=["default"], targets=["random"], seeds=[1])
+    assert "&&" not in compare.command_line(rnd) and rnd["argv"][rnd["argv"].index("--target") + 1] == "random"
     sel = compare.build_cells(full, tmp_path, methods=["sac"], targets=["random"], seeds=[3])
     assert len(sel) == 7 and all(c["seed"] == 3 for c in sel)
     for c in sel:                                                 # the baselines keep SB3's settings explicitly
@@ -104,7 +96,7 @@ def test_grid_is_data_and_filters_work(tmp_path):
         assert preset == ("tuned" if c["variant"] in ("tuned", "tuned_image") else "sb3-default")
     img, = compare.build_cells(full, tmp_path, methods=["ppo"], variants=["image_e2e"], targets=["random"], seeds=[0])
     assert img["argv"][img["argv"].index("--preset") + 1] == "image"        # pictures: params/ppo-image.yaml
-    for method in ("ppo", "sac", "planet", "cem"):                          # the perception rows read the pictures
+    for method in ("ppo", "sac", "pets", "cem"):                            # the perception rows read the pictures
         cell, = compare.build_cells(full, tmp_path, methods=[method], variants=["tuned_image"], targets=["random"],
                                     seeds=[0])
         assert cell["argv"][cell["argv"].index("--perception") + 1] == "models/perception64.pt"
@@ -115,7 +107,7 @@ def test_grid_is_data_and_filters_work(tmp_path):
     p = compare.build_cells(full, tmp_path, methods=["cem"], targets=["diagonal"], seeds=[2])[0]
     assert p["argv"][p["argv"].index("--seed") + 1] == "12000"
     # --learner-device: learners' networks there, the rope in the CPU kernel; planners untouched
-    dev = compare.build_cells(full, tmp_path, methods=["sac", "cem"], targets=["diagonal"], seeds=[0],
+    dev = compare.build_cells(full, tmp_path, methods=["sac", "cem"], targets=["random"], seeds=[0],
                               learner_device="cuda")
     learner, planner = (next(c for c in dev if c["kind"] == k) for k in ("agent", "planner"))
     assert learner["argv"][-6:-2] == ["--set", "device=cuda", "--set", "env_device=cpu"]
@@ -146,14 +138,13 @@ def test_quick_run_writes_a_well_formed_table(quick):
     sac = tables["diagonal"][2]
     assert sac["env steps / cell"] == "64" and sac["sim evals / episode"] == "—"
     assert float(tables["diagonal"][1]["sim evals / episode"]) > 0          # CEM simulates
-    merged = json.loads((root / "cells/greedy/default/random/seed0/results.json").read_text())
-    assert len(merged["episodes"]) == 2 and set(merged["episode_targets"]) <= set(compare.NAMED)
-    # each episode ran on the target the env draws for its reset seed, as its own run reports it
-    assert merged["episode_targets"] == [e["target_name"] for e in merged["episodes"]] \
-        == compare.random_target_names(10000, 2)
+    rnd = json.loads((root / "cells/greedy/default/random/seed0/results.json").read_text())
+    assert len(rnd["episodes"]) == 2 and {e["target_name"] for e in rnd["episodes"]} <= set(compare.NAMED)
     figs = sorted(p.name for p in (root / "figures").glob("*.png"))
-    assert "quick_curves_sac_diagonal.png" in figs and "quick_gallery_diagonal.png" in figs
+    assert "quick_gallery_diagonal.png" in figs and "quick_gallery_random.png" in figs
     assert "quick_planner_error_vs_evals_diagonal.png" in figs and "quick_success_vs_steps_diagonal.png" in figs
+    for name in figs:                                       # each figure drawn is linked from the report
+        assert f"(figures/{name})" in md
 
 
 def test_cost_section_puts_planners_and_learners_in_one_currency(quick):
@@ -223,7 +214,7 @@ def test_ray_smoke(tmp_path):
 
 def test_partial_report_names_the_cells_not_run(quick, tmp_path):
     import shutil
-    root, _ = quick                                 # the quick cells' paths are also cells of the full grid
+    root, _ = quick               # the quick planners' cells are also cells of the full grid (sac/points/diagonal not)
     cells_dir = tmp_path / "cells"
     shutil.copytree(root / "cells", cells_dir)
     for meta in cells_dir.rglob("cell.json"):       # their stored (quick) settings would keep them out of the report
@@ -232,11 +223,11 @@ def test_partial_report_names_the_cells_not_run(quick, tmp_path):
     compare.write_report(full, cells_dir, tmp_path / "R.md", None)
     md = (tmp_path / "R.md").read_text()
     n = len(compare.build_cells(full, cells_dir))
-    assert f"4 of {n} cells finished" in md
-    assert f"**Partial comparison: {n - 4} of {n} cells not run yet**" in md
+    assert f"3 of {n} cells finished" in md
+    assert f"**Partial comparison: {n - 3} of {n} cells not run yet**" in md
     assert "ppo/points/random: 0 1 2 3 4" in md and "greedy/default/diagonal: 1 2 3 4;" in md
     budgets = " ".join(full["budgets"].split())                # the grid's own budget statement, reflowed
-    assert "sized for a 2-core CPU" in budgets and f"**Budgets.** {budgets}" in md
+    assert "measure early learning" in budgets and f"**Budgets.** {budgets}" in md
 
 
 def test_grid_budgets_must_be_text(tmp_path):
@@ -281,3 +272,81 @@ def test_payback_only_for_learners_about_as_successful_as_cem():
     sac_line, = [x for x in lines if "| sac |" in x]
     assert ppo_line.endswith("| 1; 0 |")                     # 1000 / (1010 - 10) = 1 episode; 1 s / 10 s per ep
     assert sac_line.endswith("| — (less success than CEM) |")
+
+
+# ---------------------------------------------------------------- the results as committed data
+
+
+def test_records_rebuild_the_report_the_run_folders_give(quick, tmp_path):
+    """--collect turns the finished cells into records; the report from the records equals the report from the
+    folders (but for the command that rebuilds it), and collecting again writes the same bytes."""
+    root, _ = quick
+    results = tmp_path / "cells.jsonl"
+    argv = [*ARGS, "--out", str(root / "cells"), "--results", str(results)]
+    assert compare.main([*argv, "--collect", "--report", str(tmp_path / "A.md"), "--no-figures"]) == 0
+    first = results.read_bytes()
+    assert len(first.splitlines()) == 4
+    assert compare.main([*argv, "--collect", "--report", str(tmp_path / "A.md"), "--no-figures"]) == 0
+    assert results.read_bytes() == first                                              # stable
+    compare.write_report(compare.load_grid(quick=True), root / "cells", tmp_path / "F.md", None)  # the folders now
+    from_folders = (tmp_path / "F.md").read_text()
+    from_records = (tmp_path / "A.md").read_text()
+
+    def body(md):
+        return [line for line in md.splitlines() if not line.startswith("Grid `quick`")]
+    assert body(from_records) == body(from_folders)
+    assert f"--report-only --results {results}" in from_records
+    # a record whose settings differ from the grid's is left out and named, as a changed folder would be
+    recs = compare.read_records(results)
+    recs[0]["argv"] = [*recs[0]["argv"], "--horizon", "9"]
+    compare.write_records(recs, results)
+    grid = compare.load_grid(quick=True)
+    compare.write_report(grid, root / "cells", tmp_path / "C.md", None, records=compare.read_records(results))
+    assert "1 finished cell(s) ran with other settings than the grid's now" in (tmp_path / "C.md").read_text()
+    results.write_text(first.decode() + "not json\n")
+    with pytest.raises(ValueError, match="cells.jsonl:5: not a cell record"):
+        compare.read_records(results)
+
+
+def test_the_committed_report_is_rebuilt_from_the_committed_records(tmp_path):
+    """docs/RESULTS.md is exactly what `python -m benchmarks.compare --report-only` writes from
+    docs/results/cells.jsonl (no run folder needed)."""
+    root = Path(__file__).parents[1]
+    records = compare.read_records(root / "docs/results/cells.jsonl")
+    assert records, "no committed records"
+    grid = compare.load_grid()
+    compare.write_report(grid, "runs/compare", tmp_path / "RESULTS.md", None, records=records,
+                         source="python -m benchmarks.compare --report-only")
+    assert (tmp_path / "RESULTS.md").read_text() == (root / "docs/RESULTS.md").read_text(), \
+        "docs/RESULTS.md is stale: rebuild it with python -m benchmarks.compare --report-only"
+    for name in re.findall(r"\]\(figures/([^)]+)\)", (root / "docs/RESULTS.md").read_text()):
+        assert (root / "docs/figures" / name).is_file(), name
+
+
+def test_episodes_pair_only_where_start_and_target_agree():
+    from benchmarks.compare.summary import pairs
+    a = {(0, 0): {"start_error": 0.1, "target_name": "diagonal", "success": True, "steps": 5},
+         (0, 1): {"start_error": 0.2, "target_name": "vertical", "success": True, "steps": 5},
+         (0, 2): {"success": True, "steps": 5},
+         (1, 0): {"start_error": 0.3, "target_name": "vertical", "success": True, "steps": 5}}
+    b = {(0, 0): {"start_error": 0.1 + 1e-8, "target_name": "diagonal", "success": True, "steps": 7},
+         (0, 1): {"start_error": 0.25, "target_name": "vertical", "success": True, "steps": 7},   # another start
+         (0, 2): {"start_error": 0.2, "target_name": "vertical", "success": True, "steps": 7}}    # unverifiable
+    pr, unverified, mismatched = pairs(a, b)
+    assert [x["start_error"] if "start_error" in x else None for x, _ in pr] == [0.1, None]
+    assert (unverified, mismatched) == (1, 1)
+
+
+def test_summary_names_missing_cells_with_their_cost():
+    from benchmarks.compare.summary import missing_section, summary_table
+    grid = compare.load_grid()
+    ep = {"success": True, "steps": 10, "final_error": 0.005, "start_error": 0.1, "target_name": "diagonal"}
+    done = {("cem", "default", "random", s): {"episodes": [ep] * 20, "sim_evals": 60000, "env_steps": 200,
+                                              "wall_s": 60.0} for s in (0, 1, 2)}
+    table = "\n".join(summary_table(grid, done))
+    cem_row = next(line for line in table.splitlines() if line.startswith("| CEM"))
+    assert "| 100 % · 10.0 (3/5 seeds) | not run |" in cem_row and "| 3,010 | 3.0 s / episode |" in cem_row
+    missing = "\n".join(missing_section(grid, done))
+    cem_cost = 27 * grid["methods"]["cem"]["variants"]["default"]["cpu_min"] / 60      # 2 + 5 x 5 cells
+    assert f"| cem/default | 27 | random (3 4); random_curve (0 1 2 3 4);" in missing
+    assert f" | {cem_cost:.1f} |" in missing

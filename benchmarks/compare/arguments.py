@@ -47,8 +47,14 @@ def parser(description: str) -> OneLineParser:
     ap.add_argument("--report", default=None, metavar="PATH",
                     help="write the report to PATH, its figures into PATH's folder/figures (default: "
                          "<out>/RESULTS.md; the committed one: --report docs/RESULTS.md)")
-    ap.add_argument("--report-only", action="store_true", help="run nothing, only write the report from "
-                                                               "finished cells")
+    ap.add_argument("--report-only", action="store_true",
+                    help="run nothing, only write the report: from the results file (--results) when --out is not "
+                         "given (then to docs/RESULTS.md), else from the finished cells under --out")
+    ap.add_argument("--collect", action="store_true",
+                    help="add the finished cells under --out to the results file (--results), replacing their "
+                         "records, then write the report from that file (default docs/RESULTS.md)")
+    ap.add_argument("--results", default=None, metavar="FILE",
+                    help="the cells' records, one JSON line per cell (default docs/results/cells.jsonl)")
     ap.add_argument("--no-report", action="store_true", help="run cells, write no report")
     ap.add_argument("--no-figures", action="store_true", help="write the report without figures")
     ap.add_argument("--rerun-changed", action="store_true",
@@ -92,6 +98,10 @@ def option_errors(args: argparse.Namespace) -> list[str]:
         errors.append(f"--report {args.report} and --no-report: choose one")
     if args.ray_cpus is not None and args.ray != "local":
         errors.append("--ray-cpus: only with --ray local (a running cluster has its own CPUs)")
-    if args.rerun_changed and (args.report_only or args.list):
-        errors.append("--rerun-changed: only when running cells (not with --report-only or --list)")
+    if args.rerun_changed and (args.report_only or args.list or args.collect):
+        errors.append("--rerun-changed: only when running cells (not with --report-only, --collect or --list)")
+    if args.collect and (args.list or args.no_report):
+        errors.append("--collect writes the results file and the report: not with --list or --no-report")
+    if args.collect and args.out is None:
+        errors.append("--collect: name the run folder to collect from with --out")
     return errors

@@ -13,6 +13,7 @@ from .arguments import filter_errors, option_errors, parser
 from .grid import build_cells, command_line, is_done, load_grid
 from diffdlo.files import OutBusyError, out_lock
 from .processes import Terminated, signals_stop_compare
+from .records import RESULTS_FILE, collect, read_records
 from .report import write_report
 from .runner import run_cells
 from .settings import changed_cells, describe_changes, supersede
@@ -60,6 +61,27 @@ def _run(args, cells, out: Path) -> int:
     return 1 if counts["failed"] else 0
 
 
+def _finished(cell) -> tuple[dict, dict]:
+    """A finished cell's results.json and cell.json (empty if it has none)."""
+    import json
+
+    from .grid import cell_dir
+    meta = cell_dir(cell) / "cell.json"
+    return (json.loads((cell_dir(cell) / "results.json").read_text()),
+            json.loads(meta.read_text()) if meta.exists() else {})
+
+
+def _rebuild_command(results_file: Path, doc: Path) -> str:
+    """The command that rebuilds this report from its results file (the defaults left out)."""
+    import shlex
+    argv = ["python", "-m", "benchmarks.compare", "--report-only"]
+    if results_file.resolve() != RESULTS_FILE.resolve():
+        argv += ["--results", str(results_file)]
+    if doc != Path("docs/RESULTS.md"):
+        argv += ["--report", str(doc)]
+    return shlex.join(argv)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = parser(HARNESS_DOC.split("\n\n")[0])
     args = ap.parse_args(argv)
@@ -71,6 +93,21 @@ def main(argv: list[str] | None = None) -> int:
     cells = build_cells(grid, out, args.methods, args.variants, args.targets, args.seeds, args.learner_device)
     if not cells:
         ap.error("no cell matches the filters")
+    results_file = Path(args.results) if args.results else RESULTS_FILE
+    from_records = args.collect or (args.report_only and args.out is None and not args.quick)
+    if from_records:
+        try:
+            if args.collect:
+                n, total = collect([(c, *_finished(c)) for c in cells if is_done(c)], results_file)
+                print(f"collect: {n} finished cell(s) of {out} -> {results_file} ({total} records)")
+            records = read_records(results_file)
+        except (OSError, ValueError) as exc:
+            ap.error(f"--results {results_file}: {exc}")
+        doc = Path(args.report) if args.report else Path("docs/RESULTS.md")
+        write_report(grid, out, doc, None if args.no_figures else doc.parent / "figures", build_cells(grid, out),
+                     records=records, source=_rebuild_command(results_file, doc))
+        print(f"report: {doc} (from {results_file})")
+        return 0
     if args.list:
         for c in cells:
             print(("done    " if is_done(c) else "todo    ") + command_line(c))

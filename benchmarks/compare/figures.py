@@ -1,9 +1,9 @@
-"""The report's figures (matplotlib, optional): learning curves, success against env steps, planners' error against
-simulator evaluations, a gallery of final shapes, and the cost of planning against learning. Each band is the mean
-+- the 95 % t-interval over seeds."""
+"""The report's figures (matplotlib, optional), drawn from the cells' records alone (no run folder): the summary
+(success and moves against the simulator moves spent), per task the learners' success against env steps, the
+planners' error against simulator evaluations, a gallery of start, final shape and target, and the cost of planning
+against learning. Each band is the mean +- the 95 % t-interval over seeds."""
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -11,32 +11,33 @@ from typing import Any
 import numpy as np
 
 from diffdlo.files import replacing
-from .grid import cell_dir
+from .grid import main_rows, method_label
 from .stats import t_quantile
 
-CURVES = [("eval", "mean_reward", "eval mean reward"), ("eval", "mean_length", "eval episode length"),
-          ("rollout", "ep_reward", "rollout mean reward"), ("rollout", "ep_length", "rollout episode length"),
-          ("train", "actor_loss", "actor loss"), ("train", "critic_loss", "critic loss"),
-          ("train", "loss", "world-model loss (PlaNet)")]
+
+def figure_names(grid: dict[str, Any], done: list, costs: dict[str, list]) -> list[str]:
+    """The files ``make_figures`` writes for these cells, in the report's order (known without drawing them, so the
+    report's text does not depend on matplotlib being installed)."""
+    tag = "quick_" if grid["name"] == "quick" else ""
+    names = [f"{tag}summary.png"] if _summary_points(grid, {_key(c): r for c, r in done}) else []
+    for target in _targets(grid, done):
+        if any(c["kind"] == "agent" and c["target"] == target and r.get("curve") for c, r in done):
+            names.append(f"{tag}success_vs_steps_{target}.png")
+        if any(c["kind"] == "planner" and c["target"] == target and r.get("sim_evals") for c, r in done):
+            names.append(f"{tag}planner_error_vs_evals_{target}.png")
+        if _gallery_panels(grid, done, target):
+            names.append(f"{tag}gallery_{target}.png")
+    names += [f"{tag}cost_{target}.png" for target in costs]
+    return names
 
 
-def _series(dirs: list[Path], group: str, key: str):
-    """Per-seed (step, value) series of one CSV column, interpolated onto the first seed's steps."""
-    from agents.logs import read_csv
+def _key(c: dict[str, Any]) -> tuple:
+    return c["method"], c["variant"], c["target"], c["seed"]
 
-    runs = []
-    for d in dirs:
-        p = d / f"{group}.csv"
-        if not p.exists():
-            continue
-        rows = [r for r in read_csv(p) if r.get(key) not in (None, "")]
-        if rows:
-            runs.append((np.array([float(r["step"]) for r in rows]), np.array([float(r[key]) for r in rows])))
-    if not runs:
-        return None
-    x = runs[0][0]
-    ys = np.stack([np.interp(x, sx, sy) for sx, sy in runs])
-    return x, ys
+
+def _targets(grid: dict[str, Any], done: list) -> list[str]:
+    return [t for t in grid["targets"] if any(c["target"] == t for c, _ in done)
+            or (t in grid.get("heldout", {}) and any(t in (r.get("heldout") or {}) for _, r in done))]
 
 
 def _band(ax, x, ys, label, clip: tuple[float, float] | None = None):
@@ -51,39 +52,64 @@ def _band(ax, x, ys, label, clip: tuple[float, float] | None = None):
         ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
 
 
+def _summary_points(grid: dict[str, Any], done: dict[tuple, dict], task: str = "random") -> list[dict[str, Any]]:
+    """Per main row on ``task``: simulator moves spent for its evaluated episodes (training included), success and
+    mean moves of the successful episodes."""
+    points = []
+    for image in (False, True):
+        for method, variant in main_rows(grid, image):
+            cells = [r for k, r in done.items() if k[:3] == (method, variant, task)]
+            if not cells:
+                continue
+            eps = [e for r in cells for e in r["episodes"]]
+            moves = float(np.mean([e["steps"] for e in eps]))
+            if grid["methods"][method]["kind"] == "planner":
+                spent = float(np.mean([r.get("sim_evals", 0) for r in cells])) + moves * len(cells[0]["episodes"])
+            else:
+                back = float(np.mean([r.get("sim_backward") or 0 for r in cells]))
+                spent = float(np.mean([r["env_steps"] for r in cells])) + back + moves * len(cells[0]["episodes"])
+            succ = [e["steps"] for e in eps if e["success"]]
+            points.append({"label": method_label(grid, method) + ("" if not image else " [pictures]"),
+                           "image": image, "spent": max(spent, 1.0), "success": len(succ) / len(eps),
+                           "moves": float(np.mean(succ)) if succ else float("nan"), "seeds": len(cells)})
+    return points
 
 
-def _learner_curves(plt, by: dict[tuple, list[Path]], method: str, target: str, note: str):
-    """A learner's training curves on one task, one line per variant (points vs images, rewards); None if none."""
-    keys = [k for k in by if k[0] == "agent" and k[1] == method and k[3] == target]
-    panels = [(g, key, title) for g, key, title in CURVES if any(_series(by[k], g, key) is not None for k in keys)]
-    if not panels:
-        return None
-    fig, axes = plt.subplots(2, 3, figsize=(11, 5.5), squeeze=False)
-    for ax, (g, key, title) in zip(axes.flat, panels[:6]):
-        for k in keys:
-            s = _series(by[k], g, key)
-            if s is not None:
-                _band(ax, *s, label=k[2])
-        ax.set_title(title, fontsize=9)
-        ax.set_xlabel("env steps", fontsize=8)
-        ax.legend(fontsize=7)
-    for ax in list(axes.flat)[len(panels[:6]):]:
-        ax.axis("off")
-    fig.suptitle(f"{method} on {target}: mean ± 95% t-CI over seeds{note}", fontsize=10)
+def _summary(plt, grid: dict[str, Any], done: dict[tuple, dict], note: str):
+    points = _summary_points(grid, done)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5.2))
+    markers = "osD^v<>ph*"
+    for i, p in enumerate(points):
+        style = dict(marker=markers[i % len(markers)], ms=8, ls="none",
+                     mfc="none" if p["image"] else None, label=f"{p['label']} ({p['seeds']} seeds)")
+        axes[0].plot(p["spent"], 100 * p["success"], **style)
+        axes[1].plot(p["spent"], p["moves"], **style)
+    for ax, ylabel in ((axes[0], "success @1 cm [%]"), (axes[1], "moves to success (mean)")):
+        ax.set_xscale("log")
+        ax.set_xlabel("simulator moves spent per 20 episodes, training included")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylim(-5, 105)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=2, frameon=False)
+    fig.suptitle("random targets: each main row (hollow: from 64 px pictures).\nPlanners: the moves they simulate "
+                 f"and execute; learners: training env steps + the moves they execute{note}", fontsize=9)
+    fig.subplots_adjust(bottom=0.32, top=0.9, wspace=0.25)
     return fig
 
 
-def _success_vs_steps(plt, by: dict[tuple, list[Path]], target: str, note: str):
-    """Evaluation success against env steps, all learners on one task; None without learners."""
-    keys = [k for k in by if k[0] == "agent" and k[3] == target]
-    if not keys:
-        return None
+def _success_vs_steps(plt, done: list, target: str, note: str):
+    """Evaluation success against env steps (each record's curve), all learners on one task."""
+    by: dict[tuple, list] = {}
+    for c, r in done:
+        if c["kind"] == "agent" and c["target"] == target and r.get("curve"):
+            by.setdefault((c["method"], c["variant"]), []).append(np.array(r["curve"], dtype=float))
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
-    for k in keys:
-        s = _series(by[k], "eval", "success_rate")
-        if s is not None:
-            _band(ax, *s, label=f"{k[1]}/{k[2]}", clip=(0.0, 1.0))
+    for (method, variant), curves in by.items():
+        x = curves[0][:, 0]
+        ys = np.stack([np.interp(x, c[:, 0], c[:, 1]) for c in curves])
+        _band(ax, x, ys, f"{method}/{variant}", clip=(0.0, 1.0))
+    ax.set_xscale("log")
     ax.set_xlabel("env steps")
     ax.set_ylabel("eval success @1 cm")
     ax.set_title(f"{target}: success vs env steps{note}", fontsize=9)
@@ -91,28 +117,29 @@ def _success_vs_steps(plt, by: dict[tuple, list[Path]], target: str, note: str):
     return fig
 
 
-def _planner_error_vs_evals(plt, by: dict[tuple, list[Path]], target: str, note: str):
-    """Planners' mean per-move error against simulator evaluations (x = move k x sim evals per move); None unless a
-    planner that simulates ran on the task."""
-    keys = [k for k in by if k[0] == "planner" and k[3] == target]
-    if not any(k[1] != "greedy" for k in keys):
-        return None
+def _planner_error_vs_evals(plt, done: list, target: str, note: str):
+    """Planners' mean per-move error against simulator evaluations (x = move k x sim evals per move)."""
+    by: dict[tuple, list] = {}
+    for c, r in done:
+        if c["kind"] == "planner" and c["target"] == target and r.get("sim_evals"):
+            by.setdefault((c["method"], c["variant"]), []).append(r)
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
-    for k in keys:
+    for (method, variant), runs in by.items():
         curves, per_move = [], []
-        for d in by[k]:
-            res = json.loads((d / "results.json").read_text())
-            eps = res["episodes"]
+        for res in runs:
+            eps = [e for e in res["episodes"] if e.get("errors")]
+            if not eps:
+                continue
             n = max(len(e["errors"]) for e in eps)
             errs = np.array([e["errors"] + [e["errors"][-1]] * (n - len(e["errors"])) for e in eps])
             curves.append(errs.mean(0))
             per_move.append(res["sim_evals"] / max(res["env_steps"], 1))
-        n = min(len(c) for c in curves)
-        ys = np.stack([c[:n] for c in curves]) * 100
-        epm = float(np.mean(per_move))
-        if epm == 0:   # greedy simulates nothing
+        if not curves:
             continue
-        _band(ax, np.arange(n) * epm, ys, label=f"{k[1]} ({epm:.0f} evals/move)")
+        n = min(len(c) for c in curves)
+        epm = float(np.mean(per_move))
+        _band(ax, np.arange(n) * epm, np.stack([c[:n] for c in curves]) * 100,
+              label=f"{method}/{variant} ({epm:.0f} evals/move)")
     ax.axhline(1.0, color="k", lw=0.6, ls="--")
     ax.axhline(2.0, color="k", lw=0.6, ls=":")
     ax.set_xlabel("simulator evaluations (rope-moves)")
@@ -122,26 +149,61 @@ def _planner_error_vs_evals(plt, by: dict[tuple, list[Path]], target: str, note:
     return fig
 
 
-def _gallery(plt, grid: dict[str, Any], by: dict[tuple, list[Path]], target: str, note: str):
-    """The final-shape pictures each entry point drew with diffdlo.render.plot_ropes (first seed); None if none."""
-    pics = []
-    for k in sorted((k for k in by if k[3] == target), key=lambda k: list(grid["methods"]).index(k[1])):
-        d = sorted(by[k])[0]
-        for name in ("shapes.png", "eval_episodes.png", "ep0/shapes.png"):
-            if (d / name).exists():
-                pics.append((f"{k[1]}/{k[2]} ({d.name})", d / name))
-                break
-    if not pics:
-        return None
-    cols = min(3, len(pics))
-    rows = (len(pics) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.2 * rows), squeeze=False)
-    for ax in axes.flat:
-        ax.axis("off")
-    for ax, (title, path) in zip(axes.flat, pics):
-        ax.imshow(plt.imread(path))
-        ax.set_title(title, fontsize=8)
-    fig.suptitle(f"{target}: start and final shapes against the target (dashed), first seed{note}", fontsize=10)
+def _gallery_panels(grid: dict[str, Any], done: list, target: str) -> list[tuple[str, list]]:
+    """Per row on ``target`` (a method per row, ordered as the grid): its seeds' first episodes' shapes."""
+    rows: dict[tuple, dict[int, dict]] = {}
+    for c, r in done:
+        if c["target"] == target and r.get("shapes"):
+            rows.setdefault((c["method"], c["variant"], ""), {})[c["seed"]] = r["shapes"]
+        held = (r.get("heldout") or {}).get(target)
+        if held and held.get("shapes") and c["target"] != target:
+            rows.setdefault((c["method"], c["variant"], c["target"]), {})[c["seed"]] = held["shapes"]
+    order = list(grid["methods"])
+    out = []
+    for (method, variant, trained), by_seed in sorted(rows.items(), key=lambda kv: (
+            order.index(kv[0][0]) if kv[0][0] in order else 99, kv[0][1], kv[0][2])):
+        label = f"{method}/{variant}" + (f" (trained on {trained})" if trained else "")
+        out.append((label, [by_seed.get(s) for s in grid["seeds"]]))
+    return out
+
+
+def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
+    """Start (grey), final shape (blue) and target (dashed, at the final shape's centroid: the error ignores
+    translation) of each seed's first episode, a row per method; every panel the same view and scale, and the same
+    episode in each column (the episodes are paired)."""
+    panels = _gallery_panels(grid, done, target)
+    seeds = list(grid["seeds"])
+    shown = []
+    for _, row in panels:
+        for sh in row:
+            if sh is not None:
+                final, tgt = np.array(sh["final"]), np.array(sh["target"])
+                tgt = tgt - tgt.mean(0) + final.mean(0)
+                shown.append((np.array(sh["start"]), final, tgt))
+    lim = max(float(np.abs(np.concatenate([np.concatenate(s) for s in shown])).max()), 0.1) * 1.05
+    fig, axes = plt.subplots(len(panels), len(seeds), figsize=(1.9 * len(seeds) + 1.6, 1.9 * len(panels) + 0.5),
+                             squeeze=False)
+    it = iter(shown)
+    for i, (label, row) in enumerate(panels):
+        for j, sh in enumerate(row):
+            ax = axes[i, j]
+            ax.set_xlim(-lim, lim)
+            ax.set_ylim(-lim, lim)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if sh is None:
+                ax.text(0, 0, "not run", ha="center", va="center", fontsize=7, color="0.5")
+                continue
+            start, final, tgt = next(it)
+            ax.plot(*start.T, color="0.7", lw=1)
+            ax.plot(*tgt.T, "k--", lw=1)
+            ax.plot(*final.T, color="tab:blue", lw=1.5)
+            if i == 0:
+                ax.set_title(f"seed {seeds[j]}, episode 0", fontsize=7)
+        axes[i, 0].set_ylabel(label, fontsize=7, rotation=0, ha="right", va="center")
+    fig.suptitle(f"{target}: start (grey), final shape (blue), target (dashed; at the final shape's centroid); "
+                 f"view ±{lim:.2f} m in every panel{note}", fontsize=8)
     return fig
 
 
@@ -154,33 +216,35 @@ def _pyplot():
 
 
 def _save(plt, fig, path: Path, dpi: int = 60) -> Path:
-    fig.tight_layout()
+    if not fig.legends:                                        # a figure legend has its place already
+        fig.tight_layout()
     with replacing(path, suffix=path.suffix) as tmp:          # a reader never sees half a picture
-        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or None)
+        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or None, metadata={"Software": None})
     plt.close(fig)
     return path
 
 
 def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
-    """Per task, the learners' curves, their success against env steps, the planners' error against simulator
-    evaluations and the gallery, from the finished cells ``done`` ([(cell, results)]). Returns the files written."""
+    """The summary and, per task, the learners' success curves, the planners' error against simulator evaluations
+    and the gallery, from the finished cells ``done`` ([(cell, record)]). Returns the files written."""
     plt = _pyplot()
     figdir.mkdir(parents=True, exist_ok=True)
     tag = "quick_" if grid["name"] == "quick" else ""
     note = " [QUICK RUN: format only]" if tag else ""
-    by: dict[tuple, list[Path]] = {}
-    for c, r in done:
-        by.setdefault((c["kind"], c["method"], c["variant"], c["target"]), []).append(cell_dir(c))
     written: list[Path] = []
-    for target in sorted({k[3] for k in by}, key=lambda t: grid["targets"].index(t)):
-        figs = [(_learner_curves(plt, by, method, target, note), f"curves_{method}_{target}")
-                for method, spec in grid["methods"].items() if spec["kind"] == "agent"]
-        figs += [(_success_vs_steps(plt, by, target, note), f"success_vs_steps_{target}"),
-                 (_planner_error_vs_evals(plt, by, target, note), f"planner_error_vs_evals_{target}")]
-        written += [_save(plt, fig, figdir / f"{tag}{name}.png") for fig, name in figs if fig is not None]
-        gallery = _gallery(plt, grid, by, target, note)
-        if gallery is not None:
-            written.append(_save(plt, gallery, figdir / f"{tag}gallery_{target}.png", dpi=70))
+    by_key = {_key(c): r for c, r in done}
+    if _summary_points(grid, by_key):
+        written.append(_save(plt, _summary(plt, grid, by_key, note), figdir / f"{tag}summary.png", dpi=80))
+    for target in _targets(grid, done):
+        if any(c["kind"] == "agent" and c["target"] == target and r.get("curve") for c, r in done):
+            written.append(_save(plt, _success_vs_steps(plt, done, target, note),
+                                 figdir / f"{tag}success_vs_steps_{target}.png"))
+        if any(c["kind"] == "planner" and c["target"] == target and r.get("sim_evals") for c, r in done):
+            written.append(_save(plt, _planner_error_vs_evals(plt, done, target, note),
+                                 figdir / f"{tag}planner_error_vs_evals_{target}.png"))
+        if _gallery_panels(grid, done, target):
+            written.append(_save(plt, _gallery(plt, grid, done, target, note), figdir / f"{tag}gallery_{target}.png",
+                                 dpi=70))
     return written
 
 

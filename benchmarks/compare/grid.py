@@ -24,7 +24,25 @@ def load_grid(quick: bool = False, path: Path | str = GRID_FILE) -> dict[str, An
     if not isinstance(grid.get("budgets", ""), str):
         raise ValueError(f"{path}: grid {name!r}: 'budgets' must be text (the report prints it), "
                          f"got {grid['budgets']!r}")
+    main = grid.get("main") or {}
+    for row in [*main.get("rows", []), *main.get("image_rows", [])]:
+        method, _, variant = row.partition("/")
+        if variant not in grid["methods"].get(method, {}).get("variants", {}):
+            raise ValueError(f"{path}: grid {name!r}: main row {row!r} is not a method/variant of the grid")
+    bad = [t for t in main.get("targets", []) if t not in grid["targets"]]
+    if bad:
+        raise ValueError(f"{path}: grid {name!r}: main targets {bad} are not targets of the grid")
     return grid
+
+
+def method_label(grid: dict[str, Any], method: str) -> str:
+    """The name the report gives a method (its ``label`` in the grid, else its key)."""
+    return grid["methods"].get(method, {}).get("label", method)
+
+
+def main_rows(grid: dict[str, Any], image: bool = False) -> list[tuple[str, str]]:
+    """The (method, variant) rows of the main grid (``image``: those from pictures)."""
+    return [tuple(r.split("/", 1)) for r in (grid.get("main") or {}).get("image_rows" if image else "rows", [])]
 
 
 def _flags(args: dict[str, Any]) -> list[str]:
@@ -70,19 +88,12 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
                         continue          # learners never train on a held-out shape (their rows: results "heldout")
                     if spec["kind"] == "planner":
                         base = ["-m", f"planners.{method}", *_flags(v.get("args")), "--quiet", "--no-gif"]
-                        # random: one run per episode on the named target the env draws for it (the runner fills
-                        # in "@random"), merged into one results.json. Not one "--target random" run: there the
-                        # reset seed's generator draws the target before the start shape (other start shapes than
-                        # on a named target) and CEM's generator is seeded once, not per episode
-                        if target == "random":
-                            cell["subruns"] = [["--target", "@random", "--seed", str(eval_seed + i), "--episodes", "1",
-                                                "--out", str(d / f"ep{i}")] for i in range(int(grid["episodes"]))]
                         spec_target = grid.get("heldout", {}).get(target, target)       # a held-out name -> its file
                         cell["argv"] = base + ["--target", spec_target, "--seed", str(eval_seed), "--episodes",
                                                str(grid["episodes"]), "--out", str(d)]
                     else:
                         sets = [x for k, val in (v.get("set") or {}).items() for x in ("--set", f"{k}={val}")]
-                        cell["argv"] = ["-m", f"agents.{method}", "--target", target, "--seed", str(seed),
+                        cell["argv"] = ["-m", spec.get("module", f"agents.{method}"), "--target", target, "--seed", str(seed),
                                         *_flags(v.get("args")), "--eval-episodes", str(grid["episodes"]),
                                         "--set", f"eval_seed={eval_seed}", *sets, "--threads", "1", "--no-progress",
                                         "--out", str(d)]
@@ -94,17 +105,8 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
     return cells
 
 
-def subrun_argv(cell: dict[str, Any], subrun: list[str], target: str) -> list[str]:
-    """The entry point's arguments of one per-episode run of a planner's random cell, on ``target``."""
-    head = cell["argv"][:cell["argv"].index("--target")]
-    return [*head, "--target", target, *subrun[2:]]
-
-
 def command_line(cell: dict[str, Any]) -> str:
-    """The exact command(s) that reproduce a cell, as text (a random cell's targets are "?" until it has run)."""
-    if "subruns" in cell:
-        targets = cell.get("subrun_targets", ["?"] * len(cell["subruns"]))
-        return " && ".join(shlex.join(["python", *subrun_argv(cell, s, t)]) for s, t in zip(cell["subruns"], targets))
+    """The exact command that reproduces a cell, as text."""
     return shlex.join(["python", *cell["argv"]])
 
 

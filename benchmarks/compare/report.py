@@ -1,6 +1,9 @@
-"""The markdown report (where --report names; docs/RESULTS.md for the committed one): one table per task from the
-finished cells, the exact commands per seed, the cost section and the figures. A finished cell whose settings differ
-from the grid's now is left out of the tables and named at the top."""
+"""The markdown report (where --report names; docs/RESULTS.md for the committed one), from the cells' records: the
+committed results file (docs/results/cells.jsonl) or the finished cells of a run folder. First the main grid as one
+table and one figure, the notes on what wins where, the paired differences against CEM and the cells not run yet with
+their cost; then the definitions, one table per task with the exact commands per seed, the galleries, the cost
+section and the figures. A finished cell whose settings differ from the grid's now is left out and named at the
+top."""
 from __future__ import annotations
 
 import json
@@ -11,11 +14,13 @@ from pathlib import Path
 from typing import Any
 
 from .costs import cost_section, row_cost
-from .figures import make_cost_figures, make_figures
+from .figures import figure_names, make_cost_figures, make_figures
 from diffdlo.files import write_text_atomic
-from .grid import build_cells, cell_dir, command_line
+from .grid import ROOT, build_cells, cell_dir
+from .records import as_results, make_record, record_changes, record_key
 from .settings import changed_cells, describe_changes
 from .stats import row_stats
+from .summary import cpu_hours, missing_section, paired_section, summary_table
 
 COLUMNS = ["method", "variant", "seeds × episodes", "success @1 cm: t-CI over seeds; Wilson pooled",
            "success @2 cm (final error < 2 cm): t-CI; Wilson", "final error [cm], t-CI",
@@ -24,19 +29,13 @@ COLUMNS = ["method", "variant", "seeds × episodes", "success @1 cm: t-CI over s
 
 
 def _load(cell: dict[str, Any]) -> dict[str, Any] | None:
-    """A finished cell's results with what cell.json says of it ("_command", "_machine", "_learner_device")."""
+    """A finished cell's record, read from its folder (results.json and cell.json), in the report's shape."""
     p = cell_dir(cell) / "results.json"
     if not p.exists():
         return None
-    res = json.loads(p.read_text())
     cj = cell_dir(cell) / "cell.json"
     meta = json.loads(cj.read_text()) if cj.exists() else {}
-    res["_command"] = meta.get("command") or command_line(cell)
-    if meta.get("resume_command"):              # a cell continued elsewhere from its checkpoint (see its machine)
-        res["_command"] += "` then `" + meta["resume_command"]
-    res["_machine"] = meta.get("machine")
-    res["_learner_device"] = meta.get("learner_device")
-    return res
+    return as_results(make_record(cell, json.loads(p.read_text()), meta))
 
 
 def _fmt_ci(m: float, lo: float, hi: float, scale: float = 1.0, nd: int = 2) -> str:
@@ -81,8 +80,8 @@ def machine_label(res: dict[str, Any]) -> str:
     return label + (f"; {m['note']}" if m.get("note") else "")
 
 
-def _preamble(grid: dict[str, Any], out: Path, loaded: list, doc: Path) -> list[str]:
-    """Title, quick-run warning, definitions, budgets and the cells not run yet."""
+def _preamble(grid: dict[str, Any], out: Path, loaded: list, doc: Path, source: str) -> list[str]:
+    """Title, quick-run warning and where the report comes from."""
     cells = [c for c, _ in loaded]
     n_done = sum(r is not None for _, r in loaded)
     quick = grid["name"] == "quick"
@@ -92,14 +91,22 @@ def _preamble(grid: dict[str, Any], out: Path, loaded: list, doc: Path) -> list[
                   "`python -m benchmarks.compare --quick`",
                   "> (budgets: below). Nothing below measures the methods; the full comparison is "
                   "`python -m benchmarks.compare`.", ""]
-    lines += [f"Grid `{grid['name']}` of `benchmarks/compare.yaml`: {n_done} of {len(cells)} cells finished "
-              f"(cell directories under `{out}`). Written by `python -m benchmarks.compare"
-              f"{' --quick' if quick else ''} --out {shlex.quote(str(out))} --report-only "
-              f"--report {shlex.quote(str(doc))}`.", "",
-              "Definitions. A row aggregates the finished seeds of one method/variant on one task; every seed's "
-              f"{grid['episodes']} evaluation episodes start from "
-              f"`env.reset(seed={grid['eval_seed_base']} + 1000·seed + i)`. "
-              "**Success @1 cm**: the episode terminated with shape error < 1 cm (the env's success). "
+    lines += [f"Grid `{grid['name']}` of `benchmarks/compare.yaml`: {n_done} of {len(cells)} cells finished. "
+              f"Rebuilt by `{source}`.", ""]
+    return lines
+
+
+def _definitions(grid: dict[str, Any], loaded: list) -> list[str]:
+    """Definitions, budgets and the cells not run yet."""
+    cells = [c for c, _ in loaded]
+    n_done = sum(r is not None for _, r in loaded)
+    quick = grid["name"] == "quick"
+    lines = ["## Definitions", "",
+             "A row aggregates the finished seeds of one method/variant on one task; episode i of a seed's "
+             f"{grid['episodes']} evaluation episodes is what one rope's `env.reset(seed={grid['eval_seed_base']} + "
+             "1000·seed + i)` draws (its start shape and, on a family of targets, its target), for every method: "
+             "the rows of a task are evaluated on the same episodes. "
+             "**Success @1 cm**: the episode terminated with shape error < 1 cm (the env's success). "
               "**Success @2 cm**: the episode's last shape error < 2 cm (an episode ends at its first move under 1 cm "
               "or after max-steps moves, for planners and learners alike). "
               "**CIs (95 %)**: first a t-interval over seeds (mean of per-seed rates ± t₀.₉₇₅,ₙ₋₁·sd/√n, clipped "
@@ -160,49 +167,100 @@ def _row(grid: dict[str, Any], out: Path, target: str, key: tuple[str, str, str]
 KEPT = "<!-- kept by benchmarks.compare --report: the sections below come from other benchmarks -->"
 
 
-def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures: Path | str | None,
-                 cells: list[dict[str, Any]] | None = None) -> dict[str, Any]:
-    """The report ``doc`` (and figures in ``figures``) from the finished cells only; a finished cell whose settings
-    differ from the grid's now counts as not run and is named at the top. Returns {target: [row dicts]}."""
-    out, doc = Path(out), Path(doc)
-    cells = build_cells(grid, out) if cells is None else cells
+def _loaded_from_folders(cells: list[dict[str, Any]]) -> tuple[list, list]:
+    """[(cell, record or None)] of the run folders, and the cells whose stored settings changed (left out)."""
     changed = changed_cells(cells)
     stale = {id(c) for c, _ in changed}
-    loaded = [(c, None if id(c) in stale else _load(c)) for c in cells]
+    return [(c, None if id(c) in stale else _load(c)) for c in cells], \
+        [describe_changes(c, ch) for c, ch in changed]
+
+
+def _loaded_from_records(cells: list[dict[str, Any]], records: list[dict[str, Any]]) -> tuple[list, list]:
+    """[(cell, record or None)] of the records file, and the records whose settings differ from the grid's now."""
+    by = {record_key(r): r for r in records}
+    loaded, changed = [], []
+    for c in cells:
+        rec = by.get((c["method"], c["variant"], c["target"], c["seed"]))
+        ch = record_changes(rec, c) if rec is not None else []
+        if ch:
+            changed.append(f"{c['method']}/{c['variant']}/{c['target']} seed {c['seed']}: " + "; ".join(ch))
+        loaded.append((c, None if rec is None or ch else as_results(rec)))
+    return loaded, changed
+
+
+def _notes(grid: dict[str, Any]) -> list[str]:
+    """The hand-written reading of the results (the grid's ``notes`` file), if any."""
+    path = grid.get("notes")
+    if not path or not (ROOT / path).exists():
+        return []
+    return [(ROOT / path).read_text().rstrip(), ""]
+
+
+def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures: Path | str | None,
+                 cells: list[dict[str, Any]] | None = None, records: list[dict[str, Any]] | None = None,
+                 source: str | None = None) -> dict[str, Any]:
+    """The report ``doc`` (and figures in ``figures``; None: not drawn, still linked) from the finished cells: the
+    ``records`` (docs/results/cells.jsonl) if given, else the run folders under ``out``. A finished cell whose
+    settings differ from the grid's now counts as not run and is named at the top. ``source``: the command printed
+    as the one that rebuilds the report. Returns {target: [row dicts]}."""
+    out, doc = Path(out), Path(doc)
+    cells = build_cells(grid, out) if cells is None else cells
+    if records is None:
+        loaded, changed = _loaded_from_folders(cells)
+    else:
+        loaded, changed = _loaded_from_records(cells, records)
+    quick = grid["name"] == "quick"
+    source = source or shlex.join(["python", "-m", "benchmarks.compare", *(["--quick"] if quick else []),
+                                   "--out", str(out), "--report-only", "--report", str(doc)])
     done = [(c, r) for c, r in loaded if r is not None]
-    lines = _preamble(grid, out, loaded, doc)
+    by_key = {(c["method"], c["variant"], c["target"], c["seed"]): r for c, r in done}
+    rel = os.path.relpath(Path(figures) if figures is not None else doc.parent / "figures", doc.parent)
+    lines = _preamble(grid, out, loaded, doc, source)
     if changed:
         lines += [f"> **{len(changed)} finished cell(s) ran with other settings than the grid's now: not in the "
-                  "tables** (rerun them with `--rerun-changed`): "
-                  + "; ".join(describe_changes(c, ch) for c, ch in changed), ""]
+                  "tables** (rerun them with `--rerun-changed`): " + "; ".join(changed), ""]
     table: dict[str, list[dict[str, Any]]] = {}
     costs: dict[str, list[dict[str, Any]]] = {}
+    sections: list[str] = []
     for target in grid["targets"]:
         groups = task_groups(done, target)
         if not groups:
             continue
-        lines += [f"## Task: {target}", "", "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+        sections += [f"## Task: {target}", "", "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
         details = []
         for key, items in groups.items():
             text, st, cost, row_details = _row(grid, out, target, key, items)
-            lines.append("| " + " | ".join(text) + " |")
+            sections.append("| " + " | ".join(text) + " |")
             table.setdefault(target, []).append(dict(zip(COLUMNS, text), stats=st))
             costs.setdefault(target, []).append(cost)
             details += row_details
-        lines += ["", "<details><summary>Exact per-seed commands (what the harness ran)</summary>", "", *details, "",
-                  "</details>", ""]
+        sections += ["", "<details><summary>Exact per-seed commands (what the harness ran)</summary>", "", *details,
+                     "", "</details>", ""]
+    names = figure_names(grid, done, costs)
+    if grid.get("main"):
+        lines += ["## Summary: success @1 cm · mean moves to success", "",
+                  "Each method at its best known settings on the main tasks (learners trained on `random`, their "
+                  "held-out columns evaluated after that training), then the rows from 64 px pictures. A cell: "
+                  "success over all its episodes · mean moves of the successful ones; fewer seeds than the grid's "
+                  "are named. Details, intervals and commands: the per-task sections below.", "",
+                  *summary_table(grid, by_key), ""]
+        summary = [n for n in names if n.endswith("summary.png")]
+        lines += [f"![summary]({rel}/{n})" for n in summary] + ([""] if summary else [])
+        lines += _notes(grid) + paired_section(grid, by_key) + missing_section(grid, by_key)
+        lines += cpu_hours(grid, by_key)
+    lines += _definitions(grid, loaded) + sections
     if costs:
         lines += cost_section(costs, grid)
+    rest = [n for n in names if not n.endswith("summary.png")]
+    if rest:
+        lines += ["## Figures" + (" (quick run: format only, not results)" if quick else ""), ""]
+        lines += [f"![{Path(n).stem}]({rel}/{n})" for n in rest] + [""]
     if figures is not None:
         try:
-            figs = make_figures(grid, done, Path(figures)) + make_cost_figures(grid, costs, Path(figures))
+            written = make_figures(grid, done, Path(figures)) + make_cost_figures(grid, costs, Path(figures))
         except ImportError:
-            figs = []
-        if figs:
-            rel = os.path.relpath(Path(figures), doc.parent)
-            quick = grid["name"] == "quick"
-            lines += ["## Figures" + (" (quick run: format only, not results)" if quick else ""), ""]
-            lines += [f"![{f.stem}]({rel}/{f.name})" for f in figs] + [""]
+            written = []
+        assert not written or sorted(p.name for p in written) == sorted(names), (written, names)
     kept = ""
     if doc.exists():                           # sections of other benchmarks below the marker survive a rewrite
         old = doc.read_text()

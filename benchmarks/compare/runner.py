@@ -1,5 +1,5 @@
 """Running cells: each one a subprocess of the project's own entry point, N at once or as Ray tasks, finished cells
-skipped, interrupted learners resumed from their checkpoint, a planner's random cell run episode by episode."""
+skipped, interrupted learners resumed from their checkpoint."""
 from __future__ import annotations
 
 import json
@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from diffdlo.files import write_json_atomic
-from .grid import ROOT, cell_dir, command_line, is_done, subrun_argv
+from .grid import ROOT, cell_dir, command_line, is_done
 from .processes import allow_children, run_in_own_group, stop_children
 
 
@@ -50,49 +50,6 @@ def _call(argv: list[str], log: Path, cwd: str) -> None:
         raise RuntimeError(f"exit code {rc}: python {shlex.join(argv)} (log: {log})")
 
 
-def random_target_names(seed0: int, n: int) -> list[str]:
-    """The named target the env (target="random") draws at reset(seed=seed0 + i), i < n, as the env reports it."""
-    from diffdlo.envs import BatchedShapeControl
-
-    env = BatchedShapeControl(n, target="random")
-    env.reset(seed=seed0)                  # rope i gets seed seed0 + i: the draw of a one-rope env reset with it
-    return list(env.get_state(generators=False).target_names)
-
-
-def merge_subruns(parts: list[dict[str, Any]], cell: dict[str, Any]) -> dict[str, Any]:
-    """One results.json from the one-episode runs of a planner's random cell. Each episode's target is the one its
-    run reports (the episode's "target_name"; the run's --target in results written before that key)."""
-    eps = [e for p in parts for e in p["episodes"]]
-    names = [e.get("target_name", p["target"]) for p in parts for e in p["episodes"]]
-    if names != cell["subrun_targets"]:
-        raise RuntimeError(f"{cell['dir']}: the runs report targets {names}, the env drew {cell['subrun_targets']}")
-    steps = sum(p["env_steps"] for p in parts)
-    plan_s = sum(e.get("plan_s", 0.0) for e in eps)
-    res = dict(parts[0], target="random", seed=cell["eval_seed"], episodes=eps,
-               success_rate=sum(e["success"] for e in eps) / len(eps), env_steps=steps,
-               wall_s=sum(p["wall_s"] for p in parts), sim_evals=sum(p.get("sim_evals", 0) for p in parts),
-               plan_s_per_step=plan_s / max(steps, 1), episode_targets=names)
-    res.pop("config", None)
-    return res
-
-
-def _run_subruns(cell: dict[str, Any], log: Path) -> dict[str, Any]:
-    """A planner's random cell: one run per episode on the target the env draws for it (a finished run is kept).
-    Returns the cell with those targets ("subrun_targets")."""
-    cell = dict(cell, subrun_targets=random_target_names(cell["eval_seed"], len(cell["subruns"])))
-    d = cell_dir(cell)
-    _write_cell_json(d, cell)             # before the episodes: the settings that the kept episodes ran with
-    parts = []
-    for sub, target in zip(cell["subruns"], cell["subrun_targets"]):
-        sub_out = cell_dir(cell, sub[-1])
-        if not (sub_out / "results.json").exists():
-            _call(fresh_argv(subrun_argv(cell, sub, target)), log, cell["cwd"])
-        parts.append(json.loads((sub_out / "results.json").read_text()))
-    _write_cell_json(d, cell)
-    write_json_atomic(d / "results.json", merge_subruns(parts, cell))
-    return cell
-
-
 def fresh_argv(argv: list[str]) -> list[str]:
     """A cell's run from the start: its folder already holds the harness's cell.json and log.txt (and maybe an
     interrupted attempt's files, which the harness always restarts), so the entry point may replace them."""
@@ -118,12 +75,9 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     log = d / "log.txt"
     t0 = time.perf_counter()
     try:
-        if "subruns" in cell:
-            cell = _run_subruns(cell, log)
-        else:
-            resume = cell["kind"] == "agent" and (d / "checkpoint.pt").exists()
-            _write_cell_json(d, cell)
-            _call(_resume_argv(cell) if resume else fresh_argv(cell["argv"]), log, cell["cwd"])
+        resume = cell["kind"] == "agent" and (d / "checkpoint.pt").exists()
+        _write_cell_json(d, cell)
+        _call(_resume_argv(cell) if resume else fresh_argv(cell["argv"]), log, cell["cwd"])
         return {"cell": cell, "status": "done", "wall_s": time.perf_counter() - t0}
     except Exception as exc:  # noqa: BLE001 - a failed cell must not stop the others; it reruns next time
         return {"cell": cell, "status": "failed", "wall_s": time.perf_counter() - t0, "error": str(exc)}

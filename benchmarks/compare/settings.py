@@ -85,10 +85,8 @@ def stored_cell(cell: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def has_progress(cell: dict[str, Any]) -> bool:
-    """Finished, or holding work a rerun would keep: a learner's checkpoint (resumed), a random planner cell's
-    finished episodes (merged)."""
-    d = cell_dir(cell)
-    return is_done(cell) or (d / "checkpoint.pt").exists() or any(d.glob("ep*/results.json"))
+    """Finished, or holding work a rerun would keep: a learner's checkpoint (resumed)."""
+    return is_done(cell) or (cell_dir(cell) / "checkpoint.pt").exists()
 
 
 def settings_changes(cell: dict[str, Any]) -> list[str]:
@@ -101,13 +99,6 @@ def settings_changes(cell: dict[str, Any]) -> list[str]:
         return []
     changes = argv_changes(comparable_argv(meta["argv"], meta.get("learner_device")),
                            comparable_argv(cell["argv"], cell.get("learner_device")))
-    if "subruns" in meta or "subruns" in cell:
-        was = [comparable_argv(s) for s in meta.get("subruns") or []]
-        now = [comparable_argv(s) for s in cell.get("subruns") or []]
-        if len(was) != len(now):
-            changes.append(f"per-episode runs {len(was)} -> {len(now)}")
-        else:
-            changes += [f"episode {i}: {c}" for i, (w, n) in enumerate(zip(was, now)) for c in argv_changes(w, n)]
     return changes
 
 

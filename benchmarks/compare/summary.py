@@ -1,0 +1,209 @@
+"""The report's first screen: the main grid as one table (method x task), the paired differences against CEM on the
+same episodes, the cells not run yet with their cost, and each method's CPU-hours.
+
+Pairing: episode i of seed s on a task is the same episode for every method (benchmarks/compare.yaml, "Seeds");
+each record keeps the episode's start error and target, and two methods' episodes are counted as paired only where
+those agree (to 1e-6 m), so a change of the rule would show here as unpaired episodes, not as a silent difference.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from .grid import main_rows, method_label
+from .stats import t_interval
+
+PAIR_TOL = 1e-6          # m: two episodes with start errors this close (and the same target) are the same episode
+
+
+def _episodes(grid: dict[str, Any], done: dict[tuple, dict], method: str, variant: str, task: str,
+              trained_on: str) -> dict[tuple[int, int], dict]:
+    """(seed, episode) -> episode record of one row on one task (a learner on a held-out shape: its evaluation
+    there after training on ``trained_on``)."""
+    out = {}
+    for seed in grid["seeds"]:
+        held = task in grid.get("heldout", {}) and grid["methods"][method]["kind"] == "agent"
+        res = done.get((method, variant, trained_on if held else task, seed))
+        if res is None:
+            continue
+        eps = (res.get("heldout") or {}).get(task, {}).get("episodes") if held else res["episodes"]
+        for i, e in enumerate(eps or []):
+            out[(seed, i)] = e
+    return out
+
+
+def _row_runs(grid, done, method, variant, task, trained_on) -> tuple[list[dict], int]:
+    """The per-seed episode lists of a row on a task and the number of seeds they came from."""
+    eps = _episodes(grid, done, method, variant, task, trained_on)
+    seeds = sorted({s for s, _ in eps})
+    return [[eps[k] for k in sorted(eps) if k[0] == s] for s in seeds], len(seeds)
+
+
+def _cell_text(runs: list[list[dict]], n_seeds: int, n_all: int) -> str:
+    """"100 % · 9.2" (success @1 cm over all episodes; mean moves of the successful ones), seeds if not all."""
+    if not runs:
+        return "not run"
+    eps = [e for r in runs for e in r]
+    succ = [e["steps"] for e in eps if e["success"]]
+    moves = f"{np.mean(succ):.1f}" if succ else "—"
+    text = f"{100 * len(succ) / len(eps):.0f} % · {moves}"
+    return text + (f" ({n_seeds}/{n_all} seeds)" if n_seeds < n_all else "")
+
+
+def _costs(grid, done, method, variant, targets) -> tuple[str, str, str]:
+    """(training env steps, simulator moves per episode, wall) of a row, from its cells on ``targets``."""
+    cells = [done[k] for k in done if k[:2] == (method, variant) and k[2] in targets]
+    if not cells:
+        return "—", "—", "—"
+    eps = [e for r in cells for e in r["episodes"]]
+    moves = float(np.mean([e["steps"] for e in eps]))
+    if grid["methods"][method]["kind"] == "planner":
+        per_ep = float(np.mean([r.get("sim_evals", 0) / len(r["episodes"]) for r in cells])) + moves
+        wall = float(np.mean([r["wall_s"] / len(r["episodes"]) for r in cells]))
+        return "—", f"{per_ep:,.0f}", f"{wall:.1f} s / episode"
+    steps = float(np.mean([r["env_steps"] for r in cells]))
+    back = [r["sim_backward"] for r in cells if r.get("sim_backward") is not None]
+    train = f"{steps:,.0f}" + (f" (+{np.mean(back):,.0f} backward)" if back else "")
+    wall = float(np.mean([r["wall_s"] for r in cells]))
+    return train, f"{moves:.1f}", f"{wall / 60:.0f} min to train"
+
+
+def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
+    """The main grid as markdown: one row per main method (then the rows from pictures), one column per main task."""
+    main = grid.get("main") or {}
+    tasks = main.get("targets", [])
+    n_all = len(grid["seeds"])
+    head = ["method", "variant", *tasks, "training env steps", "sim moves / episode", "wall"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for image in (False, True):
+        rows = main_rows(grid, image)
+        if image and rows:
+            lines.append("| **from 64 px pictures** |" + " |" * (len(head) - 1))
+        for method, variant in rows:
+            texts = []
+            variant_targets = grid["methods"][method]["variants"][variant].get("targets", grid["targets"])
+            for task in tasks:
+                held = task in grid.get("heldout", {}) and grid["methods"][method]["kind"] == "agent"
+                trained_on = "random" if held else task
+                if (trained_on not in variant_targets) or (held and "eval_targets" not in
+                                                           (grid["methods"][method]["variants"][variant].get("set")
+                                                            or {})):
+                    texts.append("")
+                    continue
+                runs, n = _row_runs(grid, done, method, variant, task, trained_on)
+                texts.append(_cell_text(runs, n, n_all))
+            train, per_ep, wall = _costs(grid, done, method, variant, ["random"])
+            lines.append("| " + " | ".join([method_label(grid, method), variant, *texts, train, per_ep, wall])
+                         + " |")
+    return lines
+
+
+def pairs(a: dict[tuple, dict], b: dict[tuple, dict]) -> tuple[list[tuple[dict, dict]], int, int]:
+    """The episodes two rows share: ([(episode of a, episode of b)], unverifiable, mismatched). An episode pair whose
+    start errors or targets differ is mismatched and left out; one without a start error to compare is kept and
+    counted as unverifiable."""
+    out, unverified, mismatched = [], 0, 0
+    for k in sorted(set(a) & set(b)):
+        ea, eb = a[k], b[k]
+        if "start_error" not in ea or "start_error" not in eb:
+            unverified += 1
+        elif abs(ea["start_error"] - eb["start_error"]) > PAIR_TOL or \
+                ea.get("target_name") != eb.get("target_name"):
+            mismatched += 1
+            continue
+        out.append((ea, eb))
+    return out, unverified, mismatched
+
+
+def _ci(values: list[float], scale: float = 1.0, nd: int = 1) -> str:
+    if not values:
+        return "—"
+    m, lo, hi = t_interval(values)
+    if math.isnan(lo):
+        return f"{m * scale:+.{nd}f} (n=1)"
+    return f"{m * scale:+.{nd}f} [{lo * scale:+.{nd}f}, {hi * scale:+.{nd}f}]"
+
+
+def paired_section(grid: dict[str, Any], done: dict[tuple, dict], reference: tuple[str, str] = ("cem", "default")
+                   ) -> list[str]:
+    """Each main row against CEM on the same episodes, per main task: the difference in success and, on the episodes
+    both solved, in moves, with 95 % paired t-intervals over the episode pairs."""
+    main = grid.get("main") or {}
+    if reference not in main_rows(grid):
+        return []
+    lines = ["## Paired against CEM, episode by episode", "",
+             f"Each row minus {method_label(grid, reference[0])} on the same episodes (same seed, same episode index: "
+             "the same start shape and target, checked from each episode's start error and target). **Δ success**: "
+             "percentage points, over all paired episodes; **Δ moves**: over the episodes both solved (negative: "
+             "fewer moves than CEM). Brackets: 95 % paired t-interval over episode pairs. **pairs**: paired episodes "
+             "(unverifiable: recorded before episodes kept their start error; mismatched ones are left out).", "",
+             "| method | variant | task | Δ success [pp] | Δ moves (both solved) | pairs |",
+             "|---|---|---|---|---|---|"]
+    for image in (False, True):
+        for method, variant in main_rows(grid, image):
+            if (method, variant) == reference:
+                continue
+            for task in main.get("targets", []):
+                held = task in grid.get("heldout", {}) and grid["methods"][method]["kind"] == "agent"
+                a = _episodes(grid, done, method, variant, task, "random" if held else task)
+                b = _episodes(grid, done, *reference, task, task)
+                if not a or not b:
+                    continue
+                pr, unverified, mismatched = pairs(a, b)
+                if not pr:
+                    continue
+                ds = [float(x["success"]) - float(y["success"]) for x, y in pr]
+                dm = [x["steps"] - y["steps"] for x, y in pr if x["success"] and y["success"]]
+                note = f"{len(pr)}" + (f" ({unverified} unverifiable)" if unverified else "") + \
+                    (f" ({mismatched} mismatched, left out)" if mismatched else "")
+                lines.append("| " + " | ".join([method_label(grid, method), variant, task, _ci(ds, 100, 0),
+                                                _ci([float(x) for x in dm]) + f" (n={len(dm)})", note]) + " |")
+    return lines + [""]
+
+
+def missing_section(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
+    """The main grid's cells not run yet, one line per row with its cost (the variant's cpu_min x cells)."""
+    main = grid.get("main") or {}
+    rows = []
+    total = 0.0
+    for image in (False, True):
+        for method, variant in main_rows(grid, image):
+            v = grid["methods"][method]["variants"][variant]
+            parts, n = [], 0
+            for target in v.get("targets", grid["targets"]):
+                if target not in main.get("targets", []) or (grid["methods"][method]["kind"] == "agent"
+                                                            and target in grid.get("heldout", {})):
+                    continue
+                seeds = [s for s in grid["seeds"] if (method, variant, target, s) not in done]
+                if seeds:
+                    parts.append(f"{target} ({' '.join(map(str, seeds))})")
+                    n += len(seeds)
+            if parts:
+                cost = n * float(v.get("cpu_min", float("nan"))) / 60
+                total += 0.0 if math.isnan(cost) else cost
+                rows.append(f"| {method}/{variant} | {n} | {'; '.join(parts)} | "
+                            + ("unknown" if math.isnan(cost) else f"{cost:.1f}") + " |")
+    if not rows:
+        return ["**The main grid is complete**: every main row on every main task, "
+                f"{len(grid['seeds'])} seeds × {grid['episodes']} episodes.", ""]
+    return ["## Main-grid cells not run yet", "",
+            f"Priced at the grid's `cpu_min` (CPU minutes per cell on the 2-core machine, measured): ≈ {total:.1f} "
+            "CPU-hours in all. A learner's held-out columns come with its `random` cells. A cell runs with `python "
+            "-m benchmarks.compare --methods M --variants V --targets T --seeds S`.", "",
+            "| row | cells | task (seeds) | CPU-hours |", "|---|---|---|---|", *rows, ""]
+
+
+def cpu_hours(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
+    """Each method's CPU-hours over its finished cells (each cell one process on one core: its wall time)."""
+    by: dict[str, list[float]] = {}
+    for (method, *_), r in done.items():
+        by.setdefault(method, []).append(float(r.get("wall_s", 0.0)))
+    if not by:
+        return []
+    parts = [f"{method_label(grid, m)} {sum(w) / 3600:.1f} ({len(w)} cells)" for m, w in
+             sorted(by.items(), key=lambda kv: list(grid["methods"]).index(kv[0]) if kv[0] in grid["methods"] else 99)]
+    total = sum(sum(w) for w in by.values()) / 3600
+    return [f"**CPU-hours of the finished cells** (each cell one process on one core, so its wall time; {total:.1f} "
+            "in all): " + "; ".join(parts) + ".", ""]
