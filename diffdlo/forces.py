@@ -1,4 +1,4 @@
-"""Internal energy and forces of the planar mass-spring cable (thesis eq 2.2-2.4; README "The model").
+"""Internal energy and forces of the planar mass-spring cable (thesis eq 2.2-2.4; docs/SIMULATOR.md "The model").
 
 Pure batched functions of ``pos`` (B, N, 2); device and dtype follow the input.
 

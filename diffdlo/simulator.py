@@ -47,7 +47,7 @@ BACKENDS = ("auto", "kernel", "torch", "triton")
 
 
 class Simulator:
-    """Batched planar mass-spring cable on ``device`` in ``dtype``. README "Use the simulator" shows the API.
+    """Batched planar mass-spring cable on ``device`` in ``dtype``. docs/SIMULATOR.md "Use the simulator" shows the API.
 
     ``backend``: "torch" is the eager reference path (every controller, any device); "kernel" is the fused C++
     CPU kernel (kinematic controller; diffdlo/csrc/cable.cpp) with a hand-written adjoint, per-rope physics and

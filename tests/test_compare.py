@@ -200,6 +200,7 @@ def test_resume_skips_finished_cells(quick, capsys):
     assert sorted(r["status"] for r in results) == ["done", "skipped", "skipped", "skipped"]
 
 
+@pytest.mark.ray    # run by .ci/run after installing the [ray] extra
 def test_ray_smoke(tmp_path):
     ray = pytest.importorskip("ray")
     grid = compare.load_grid(quick=True)
@@ -321,6 +322,10 @@ def test_the_committed_report_is_rebuilt_from_the_committed_records(tmp_path):
         "docs/RESULTS.md is stale: rebuild it with python -m benchmarks.compare --report-only"
     for name in re.findall(r"\]\(figures/([^)]+)\)", (root / "docs/RESULTS.md").read_text()):
         assert (root / "docs/figures" / name).is_file(), name
+    # the README's summary block is the same records' short table
+    from benchmarks.compare.report import readme_summary
+    block = readme_summary(grid, records, compare.build_cells(grid, "runs/compare"))
+    assert block in (root / "README.md").read_text(), "README.md's summary block is stale: --report-only rewrites it"
 
 
 def test_episodes_pair_only_where_start_and_target_agree():

@@ -14,7 +14,8 @@ from .grid import build_cells, command_line, is_done, load_grid
 from diffdlo.files import OutBusyError, out_lock
 from .processes import Terminated, signals_stop_compare
 from .records import RESULTS_FILE, collect, read_records
-from .report import write_report
+from .grid import ROOT
+from .report import readme_summary, update_readme, write_report
 from .runner import run_cells
 from .settings import changed_cells, describe_changes, supersede
 
@@ -104,9 +105,13 @@ def main(argv: list[str] | None = None) -> int:
         except (OSError, ValueError) as exc:
             ap.error(f"--results {results_file}: {exc}")
         doc = Path(args.report) if args.report else Path("docs/RESULTS.md")
-        write_report(grid, out, doc, None if args.no_figures else doc.parent / "figures", build_cells(grid, out),
+        every_cell = build_cells(grid, out)
+        write_report(grid, out, doc, None if args.no_figures else doc.parent / "figures", every_cell,
                      records=records, source=_rebuild_command(results_file, doc))
         print(f"report: {doc} (from {results_file})")
+        if doc.resolve() == (ROOT / "docs" / "RESULTS.md").resolve() and grid.get("main"):
+            if update_readme(ROOT / "README.md", readme_summary(grid, records, every_cell)):
+                print("report: README.md summary block")
         return 0
     if args.list:
         for c in cells:

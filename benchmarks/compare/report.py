@@ -20,7 +20,32 @@ from .grid import ROOT, build_cells, cell_dir
 from .records import as_results, make_record, record_changes, record_key
 from .settings import changed_cells, describe_changes
 from .stats import row_stats
-from .summary import cpu_hours, missing_section, paired_section, summary_table
+from .summary import cpu_hours, missing_section, paired_section, readme_table, summary_table
+
+README_BEGIN, README_END = "<!-- summary:begin -->", "<!-- summary:end -->"
+
+
+def readme_summary(grid: dict[str, Any], records: list[dict[str, Any]], cells: list[dict[str, Any]]) -> str:
+    """The README's summary block (between its markers) from the records: the short table and where it comes
+    from."""
+    loaded, _ = _loaded_from_records(cells, records)
+    done = {(c["method"], c["variant"], c["target"], c["seed"]): r for c, r in loaded if r is not None}
+    return "\n".join([README_BEGIN, "Success at 1 cm · mean moves to success, on the same episodes for every method "
+                      f"({len(grid['seeds'])} seeds × {grid['episodes']} episodes per task; fewer seeds are named). "
+                      "Generated from `docs/results/cells.jsonl` by `python -m benchmarks.compare --report-only`.", "",
+                      *readme_table(grid, done), "", "![summary](docs/figures/summary.png)", README_END])
+
+
+def update_readme(path: Path | str, block: str) -> bool:
+    """Replace the README's summary block with ``block``; False if it has no markers (nothing written)."""
+    path = Path(path)
+    text = path.read_text() if path.exists() else ""
+    if README_BEGIN not in text or README_END not in text:
+        return False
+    head, rest = text.split(README_BEGIN, 1)
+    tail = rest.split(README_END, 1)[1]
+    write_text_atomic(path, head + block + tail)
+    return True
 
 COLUMNS = ["method", "variant", "seeds × episodes", "success @1 cm: t-CI over seeds; Wilson pooled",
            "success @2 cm (final error < 2 cm): t-CI; Wilson", "final error [cm], t-CI",
