@@ -30,10 +30,12 @@ def readme_summary(grid: dict[str, Any], records: list[dict[str, Any]], cells: l
     from."""
     loaded, _ = _loaded_from_records(cells, records)
     done = {(c["method"], c["variant"], c["target"], c["seed"]): r for c, r in loaded if r is not None}
-    return "\n".join([README_BEGIN, "Success at 1 cm · mean moves to success, on the same episodes for every method "
-                      f"({len(grid['seeds'])} seeds × {grid['episodes']} episodes per task; fewer seeds are named). "
-                      "Generated from `docs/results/cells.jsonl` by `python -m benchmarks.compare --report-only`.", "",
-                      *readme_table(grid, done), "", "![summary](docs/figures/summary.png)", README_END])
+    return "\n".join([README_BEGIN, *readme_table(grid, done), "",
+                      "Success at 1 cm · mean moves to success, the same episodes for every method "
+                      f"({len(grid['seeds'])} seeds × {grid['episodes']} per task; fewer seeds named; empty: not a "
+                      "cell of the grid). Written from `docs/results/cells.jsonl` by `python -m benchmarks.compare "
+                      "--report-only`; the figure: [docs/figures/summary.png](docs/figures/summary.png).",
+                      README_END])
 
 
 def update_readme(path: Path | str, block: str) -> bool:

@@ -101,33 +101,39 @@ def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
 
 
 def readme_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
-    """The README's short form of the summary: each main row on random, random_curve and the held-out shapes pooled
-    (learners: trained on random), its training env steps and the simulator moves of one episode."""
+    """The README's short form of the summary, one line per main method: random, random_curve, the held-out shapes
+    pooled (learners: trained on random) and random from 64 px pictures (the method's image row), with its training
+    env steps and the simulator moves of one episode (on random, from node positions)."""
     heldout = [t for t in (grid.get("main") or {}).get("targets", []) if t in grid.get("heldout", {})]
     n_all = len(grid["seeds"])
-    head = ["method", "random", "random_curve", f"held-out shapes ({len(heldout)})", "training env steps",
-            "sim moves / episode"]
+    images = dict(main_rows(grid, image=True))
+    head = ["method", "random", "random_curve", f"held-out shapes ({len(heldout)})", "random, from 64 px pictures",
+            "training env steps", "sim moves / episode"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for image in (False, True):
-        for method, variant in main_rows(grid, image):
-            v = grid["methods"][method]["variants"][variant]
-            agent = grid["methods"][method]["kind"] == "agent"
-            texts = []
-            for task in ("random", "random_curve"):
-                runs, n = _row_runs(grid, done, method, variant, task, task)
-                texts.append(_cell_text(runs, n, n_all) if task in v.get("targets", grid["targets"]) else "")
-            held_runs, seeds = [], set()
-            if not agent or "eval_targets" in (v.get("set") or {}):
-                for task in heldout:
-                    runs, _ = _row_runs(grid, done, method, variant, task, "random" if agent else task)
-                    held_runs += runs
-                    seeds |= {s for s in grid["seeds"] if (method, variant, "random" if agent else task, s) in done}
-            runs_there = ("eval_targets" in (v.get("set") or {})) if agent else \
-                any(t in v.get("targets", grid["targets"]) for t in heldout)
-            texts.append(_cell_text(held_runs, len(seeds), n_all) if held_runs else ("not run" if runs_there else ""))
-            train, per_ep, _ = _costs(grid, done, method, variant, ["random"])
-            name = method_label(grid, method) + (" (pictures)" if image else "")
-            lines.append("| " + " | ".join([name, *texts, train, per_ep]) + " |")
+    for method, variant in main_rows(grid):
+        spec = grid["methods"][method]
+        agent = spec["kind"] == "agent"
+        v = spec["variants"][variant]
+        texts = []
+        for task in ("random", "random_curve"):
+            runs, n = _row_runs(grid, done, method, variant, task, task)
+            texts.append(_cell_text(runs, n, n_all) if task in v.get("targets", grid["targets"]) else "")
+        held_runs, seeds = [], set()
+        for task in heldout:
+            source = "random" if agent else task
+            runs, _ = _row_runs(grid, done, method, variant, task, source)
+            held_runs += runs
+            seeds |= {s for s in grid["seeds"] if (method, variant, source, s) in done}
+        runs_there = ("eval_targets" in (v.get("set") or {})) if agent else \
+            any(t in v.get("targets", grid["targets"]) for t in heldout)
+        texts.append(_cell_text(held_runs, len(seeds), n_all) if held_runs else ("not run" if runs_there else ""))
+        if method in images:
+            runs, n = _row_runs(grid, done, method, images[method], "random", "random")
+            texts.append(_cell_text(runs, n, n_all))
+        else:
+            texts.append("")
+        train, per_ep, _ = _costs(grid, done, method, variant, ["random"])
+        lines.append("| " + " | ".join([spec.get("short", method), *texts, train, per_ep]) + " |")
     return lines
 
 
