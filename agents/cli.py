@@ -10,6 +10,7 @@ import yaml
 
 from agents import config as config_lib
 from agents.checkpoints import CHECKPOINT, load_checkpoint
+from diffdlo.signals import Interrupted, exit_code
 from diffdlo.files import OutBusyError
 from diffdlo.params import ParamsError
 from diffdlo.rewards import REWARDS
@@ -147,6 +148,11 @@ def run_cli(cls, algo: str, doc: str | None, train: Callable, argv: list[str] | 
     except (ValueError, TargetError, ParamsError, FileNotFoundError, FileExistsError, OutBusyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:            # Interrupted: stopped at a step with a checkpoint; else at once
+        message = str(exc) if isinstance(exc, Interrupted) else \
+            f"{algo}: stopped at once by a second signal: the last checkpoint in {out} is where --resume continues"
+        print(message, file=sys.stderr)
+        return exit_code(exc)
     print(f"{algo}: success rate {res['success_rate']:.2f} over {len(res['episodes'])} eval episodes, "
           f"{res['env_steps']} env steps, {res['wall_s']:.1f} s -> {out}/results.json")
     return 0

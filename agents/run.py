@@ -36,20 +36,29 @@ from agents.envs import make_env
 from agents.evaluation import eval_row, evaluate, evaluate_heldout, heldout_envs, write_results
 from agents.logs import EpisodeStats, Logger, fmt_postfix
 from diffdlo.files import check_fresh_out, out_lock
+from diffdlo.signals import Interrupted, StopRequest, stop_at_boundary
+
+_stop: list[StopRequest] = []      # the running learner's stop request (SIGINT/SIGTERM/SIGHUP), set by @learner
 
 
 def learner(train: Callable) -> Callable:
     """A learner's ``train(cfg, out, resume=False, progress=True, overwrite=False)``: the config checked; a fresh run
     refused in a folder that holds an earlier run (unless ``overwrite``: its logs are then replaced); the folder
-    locked against a second writer; run with cfg.run.threads torch CPU threads (restored afterwards)."""
+    locked against a second writer; run with cfg.run.threads torch CPU threads (restored afterwards). A SIGINT,
+    SIGTERM or SIGHUP, however the process was started, stops it at the next step boundary with a checkpoint saved
+    (``Interrupted``; ``--resume`` continues exactly); a second signal stops it at once."""
     @functools.wraps(train)
     def checked_train(cfg, out: Path | str, resume: bool = False, progress: bool = True,
                       overwrite: bool = False) -> dict[str, Any]:
         cfg.check()
         if not resume:
             check_fresh_out(out, overwrite, "an earlier run")
-        with out_lock(out), torch_threads(cfg.run.threads):
-            return train(cfg, out, resume, progress)
+        with out_lock(out), torch_threads(cfg.run.threads), stop_at_boundary() as request:
+            _stop.append(request)
+            try:
+                return train(cfg, out, resume, progress)
+            finally:
+                _stop.remove(request)
     return checked_train
 
 
@@ -131,11 +140,17 @@ class Run:
 
     def checkpoint_if_due(self, parts_fn: Callable[[], dict[str, Any]]) -> None:
         """Every checkpoint_every env steps and at the end of the budget: the learner's parts and the run's state in
-        one atomic file."""
+        one atomic file. Asked to stop (a signal, see ``learner``): a checkpoint now, then ``Interrupted``."""
         opts = self.cfg.run
-        if self.step - self.last_ckpt >= opts.checkpoint_every or self.step >= opts.total_steps:
+        stop = _stop[-1].signal if _stop else None
+        if stop or self.step - self.last_ckpt >= opts.checkpoint_every or self.step >= opts.total_steps:
             self.last_ckpt = self.step
             self.save(parts_fn())
+        if stop:
+            self.bar.close()
+            self.logger.close()
+            raise Interrupted(stop, self.step, f"{self.algo}: stopped by {stop} at env step {self.step}; checkpoint "
+                                               f"saved: continue with --out {self.out} --resume")
 
     def save(self, parts: dict[str, Any]) -> None:
         state = {k: v.state_dict() if hasattr(v, "state_dict") else v for k, v in parts.items()}

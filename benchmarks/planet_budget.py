@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"{out / 'results.json'} exists: pass --overwrite to replace it")
     try:
         ck = load_checkpoint(Path(args.run) / CHECKPOINT)
-    except FileNotFoundError as exc:
+    except (FileNotFoundError, ValueError) as exc:
         ap.error(str(exc))
     cfg = config.from_flat(planet.PlaNetConfig, ck["config"])
     if cfg.model != "ensemble":

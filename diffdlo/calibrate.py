@@ -474,7 +474,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import yaml
 
-    from .files import check_fresh_out, out_lock, write_json_atomic
+    from .files import check_fresh_out, out_lock
     from .params import ParamsError, load_params
     from .record import make_recording
     from .recording import RecordingError, load_recording
@@ -539,31 +539,13 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(str(exc))
     torch.set_num_threads(args.threads)
     out = Path(args.out)
-    with out_lock(out):
-        t0 = time.perf_counter()
-        fit_starts = not args.recorded_starts
-        result = (fit_gauss_newton(sim, moves, starts=args.starts, iterations=args.iterations, seed=args.seed,
-                                   fit_starts=fit_starts, hold=hold, progress=not args.no_progress)
-                  if args.method == "gauss-newton" else
-                  fit(sim, moves, starts=args.starts, iterations=args.iterations, lr=args.lr, seed=args.seed,
-                      fit_starts=fit_starts, progress=not args.no_progress))
-        fit_s = time.perf_counter() - t0
-        fitted_moves = moves if result.kept is None else moves.subset(result.kept)
-        ident = identifiability(sim, fitted_moves, result.theta, result.offsets, fit_starts, at_theta=result.at_best)
-        true = rec.meta.get("true_params") if args.synthetic else None
-        results = {"data": "synthetic" if args.synthetic else str(args.data), "seed": args.seed, "method": args.method,
-                   "fit_starts": fit_starts, "noise": args.noise if args.synthetic else None,
-                   "held": list(hold) if args.method == "gauss-newton" else [],
-                   "moves_left_out": {str(k): v for k, v in result.left_out.items()},
-                   "moves": rec.n_moves, "frames_compared": int(moves.visible.sum()), "params": args.params,
-                   "nominal": {k: float(getattr(nominal, k)) for k in PHYSICAL}, "true": true,
-                   "fitted": result.values, "rms_m": result.rms, "start_rms_m": result.start_rms,
-                   "history_rms_m": result.history[::max(1, len(result.history) // 50)],
-                   "simulator_calls": result.simulator_calls + ident["simulator_calls"], "fit_s": fit_s,
-                   "eigenvalues": ident["eigenvalues"], "sigma_m": ident["sigma_m"],
-                   "parameters": report(ident, true)}
-        write_json_atomic(out / "results.json", results)
-        plot_trajectories(sim, fitted_moves, result.theta, out / "trajectories.png", offsets=result.offsets)
+    from .signals import exit_code, stop_on_signals
+    try:
+        with out_lock(out), stop_on_signals():         # SIGINT/SIGTERM stop it however it was started
+            results, result, fit_s = _calibrate(args, sim, moves, rec, nominal, hold, out)
+    except KeyboardInterrupt as exc:
+        print(f"calibrate: stopped by {exc or 'SIGINT'}: no results written", file=sys.stderr)
+        return exit_code(exc)
     for name, row in results["parameters"].items():
         extra = f", true {row['true']:.4g} ({100 * row['rel_error']:+.2f} %)" if "true" in row else ""
         print(f"{name:9s} fitted {row['fitted']:.4g}{extra}, std {100 * row['std']:.2g} %, "
@@ -571,6 +553,36 @@ def main(argv: list[str] | None = None) -> int:
     print(f"rms {1000 * result.rms:.3f} mm over {results['frames_compared']} node frames, {fit_s:.0f} s, "
           f"{results['simulator_calls']} batched simulator calls -> {out / 'results.json'}")
     return 0
+
+
+def _calibrate(args, sim, moves, rec, nominal, hold, out):
+    """The fit, its identifiability and the run's results.json and picture. Returns (results, fit result, fit s)."""
+    from .files import write_json_atomic
+    t0 = time.perf_counter()
+    fit_starts = not args.recorded_starts
+    result = (fit_gauss_newton(sim, moves, starts=args.starts, iterations=args.iterations, seed=args.seed,
+                               fit_starts=fit_starts, hold=hold, progress=not args.no_progress)
+              if args.method == "gauss-newton" else
+              fit(sim, moves, starts=args.starts, iterations=args.iterations, lr=args.lr, seed=args.seed,
+                  fit_starts=fit_starts, progress=not args.no_progress))
+    fit_s = time.perf_counter() - t0
+    fitted_moves = moves if result.kept is None else moves.subset(result.kept)
+    ident = identifiability(sim, fitted_moves, result.theta, result.offsets, fit_starts, at_theta=result.at_best)
+    true = rec.meta.get("true_params") if args.synthetic else None
+    results = {"data": "synthetic" if args.synthetic else str(args.data), "seed": args.seed, "method": args.method,
+               "fit_starts": fit_starts, "noise": args.noise if args.synthetic else None,
+               "held": list(hold) if args.method == "gauss-newton" else [],
+               "moves_left_out": {str(k): v for k, v in result.left_out.items()},
+               "moves": rec.n_moves, "frames_compared": int(moves.visible.sum()), "params": args.params,
+               "nominal": {k: float(getattr(nominal, k)) for k in PHYSICAL}, "true": true,
+               "fitted": result.values, "rms_m": result.rms, "start_rms_m": result.start_rms,
+               "history_rms_m": result.history[::max(1, len(result.history) // 50)],
+               "simulator_calls": result.simulator_calls + ident["simulator_calls"], "fit_s": fit_s,
+               "eigenvalues": ident["eigenvalues"], "sigma_m": ident["sigma_m"],
+               "parameters": report(ident, true)}
+    write_json_atomic(out / "results.json", results)
+    plot_trajectories(sim, fitted_moves, result.theta, out / "trajectories.png", offsets=result.offsets)
+    return results, result, fit_s
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ from tqdm import tqdm
 from diffdlo import task
 from diffdlo.checks import check_interval
 from diffdlo.envs import BatchedShapeControl
+from diffdlo.signals import exit_code, stop_on_signals
 from diffdlo.files import OutBusyError, check_fresh_out, out_lock, shapes_record, write_json_atomic
 from diffdlo.params import CableParams, ParamsError, load_params
 from diffdlo.physics import PHYSICAL, physical_values, scaled_params   # what a scale may change
@@ -248,7 +249,7 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
         parser.error(str(exc))
 
     try:
-        with out_lock(out):                                 # one writer per --out
+        with out_lock(out), stop_on_signals():              # one writer per --out; signals stop it however started
             t0 = time.perf_counter()
             episodes = [run_episode(env, planner, args.seed + i, progress=not args.quiet, perception=perception,
                                     desc=f"{name} {label} ep {i + 1}/{args.episodes}") for i in range(args.episodes)]
@@ -256,6 +257,10 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
             write_outputs(out, name, args, label, target, episodes, time.perf_counter() - t0, extra=mismatch)
     except OutBusyError as exc:
         parser.error(str(exc))
+    except KeyboardInterrupt as exc:
+        print(f"{name}: stopped by {exc or 'SIGINT'}: no results written (a planner keeps no partial state)",
+              file=sys.stderr)
+        return exit_code(exc)
     return 0
 
 

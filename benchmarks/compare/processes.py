@@ -8,8 +8,8 @@ import subprocess
 import sys
 import threading
 import time
-from contextlib import contextmanager
-from typing import Iterator
+
+from diffdlo.signals import Terminated, stop_on_signals  # noqa: F401 - Terminated: cli's exit code
 
 GRACE_S = 5.0          # how long a stopped cell's group gets to exit on SIGTERM before SIGKILL
 
@@ -92,26 +92,8 @@ def allow_children() -> None:
     _stopping.clear()
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (or SIGHUP), raised in the main thread like Ctrl-C so that the same cleanup runs."""
-
-
-@contextmanager
-def signals_stop_compare() -> Iterator[None]:
-    """While inside: SIGTERM and SIGHUP raise Terminated in the main thread and SIGINT raises KeyboardInterrupt,
-    also where the process was started with SIGINT ignored (a shell's background job: ``cmd &``); the previous
-    handlers come back on leaving. Only the main thread can install handlers: elsewhere a no-op."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def raise_terminated(signum, _frame):
-        raise Terminated(signal.Signals(signum).name)
-
-    old = {s: signal.signal(s, raise_terminated) for s in (signal.SIGTERM, signal.SIGHUP)}
-    old[signal.SIGINT] = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        yield
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+def signals_stop_compare():
+    """While inside: SIGTERM and SIGHUP raise Terminated in the main thread and SIGINT raises KeyboardInterrupt, also
+    where the process was started with SIGINT ignored (a shell's background job: ``cmd &``); the previous handlers
+    come back on leaving (diffdlo.signals.stop_on_signals)."""
+    return stop_on_signals()
