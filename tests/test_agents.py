@@ -162,6 +162,7 @@ def test_resume_without_checkpoint_and_bad_target(tmp_path, capsys):
     assert exc.value.code == 2 and "zigzag" in capsys.readouterr().err and not (tmp_path / "run").exists()
 
 
+@pytest.mark.ecosystem    # run by .ci/run after installing the optional extras
 def test_tensorboard_logging_when_installed(tmp_path):
     pytest.importorskip("tensorboard")
     assert sac.main(argv("sac", tmp_path, 128)) == 0

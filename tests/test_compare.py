@@ -200,7 +200,7 @@ def test_resume_skips_finished_cells(quick, capsys):
     assert sorted(r["status"] for r in results) == ["done", "skipped", "skipped", "skipped"]
 
 
-@pytest.mark.ray    # run by .ci/run after installing the [ray] extra
+@pytest.mark.ecosystem    # run by .ci/run after installing the optional extras
 def test_ray_smoke(tmp_path):
     ray = pytest.importorskip("ray")
     grid = compare.load_grid(quick=True)

@@ -338,7 +338,7 @@ def test_bad_filters_and_counts_exit_2_on_one_line(extra, named, capsys):
 # 7. the Ray path
 
 
-@pytest.mark.ray    # run by .ci/run after installing the [ray] extra
+@pytest.mark.ecosystem    # run by .ci/run after installing the optional extras
 def test_ray_runs_a_two_cell_grid_on_a_local_ray(tmp_path):
     ray = pytest.importorskip("ray")
     grid = compare.load_grid(quick=True)

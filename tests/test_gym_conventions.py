@@ -293,6 +293,7 @@ def test_simulator_accepts_ropes_after_hard_moves(small):
 
 
 # ---------------------------------------------------------------------------------------------- torchrl
+@pytest.mark.ecosystem    # run by .ci/run after installing the optional extras
 def test_torchrl_rollout_of_the_native_vector_env(small):
     pytest.importorskip("torchrl")
     from torchrl.envs import GymWrapper
