@@ -93,13 +93,14 @@ def _load_file(path: Path) -> Any:
     if path.suffix == ".npy":
         try:
             return np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            raise TargetError(f"target file {str(path)!r} is not a readable .npy array: {exc}") from exc
+        except (ValueError, OSError, EOFError) as exc:          # EOFError: an empty or cut-short file
+            raise TargetError(f"target file {str(path)!r} is not a readable .npy array: "
+                              f"{exc or type(exc).__name__}") from exc
     if path.suffix in (".yaml", ".yml"):
         with open(path) as fh:
             try:
                 data = yaml.safe_load(fh)
-            except yaml.YAMLError as exc:
+            except (yaml.YAMLError, UnicodeDecodeError) as exc:     # UnicodeDecodeError: not text at all
                 raise TargetError(f"target file {str(path)!r} is not valid YAML: {exc}") from exc
         if isinstance(data, dict):
             if "points" not in data:
