@@ -475,8 +475,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     out.mkdir(parents=True, exist_ok=True)
-    with out_lock(out):
-        r = train(out, cfg, p, args.view_size, progress=not args.no_progress, resume=args.resume)
+    from .signals import exit_code, stop_on_signals
+    try:
+        with out_lock(out), stop_on_signals():       # SIGINT/SIGTERM stop it however it was started
+            r = train(out, cfg, p, args.view_size, progress=not args.no_progress, resume=args.resume)
+    except KeyboardInterrupt as exc:
+        print(f"perception: stopped by {exc or 'SIGINT'}: --resume continues from the last saved state "
+              f"({out / 'train_state.pt'}, written every --eval-every steps)", file=sys.stderr)
+        return exit_code(exc)
     print(f"node error {r['node_error_mm']:.2f} mm (net alone {r['net_node_error_mm']:.2f}), target error "
           f"{r['target_error_mm']:.2f} mm at {cfg.image_size} px, {r['train_images']} training pictures, "
           f"{r['wall_s']:.0f} s -> {out / 'results.json'}")
