@@ -150,7 +150,7 @@ def run_cli(cls, algo: str, doc: str | None, train: Callable, argv: list[str] | 
         return 2
     except KeyboardInterrupt as exc:            # Interrupted: stopped at a step with a checkpoint; else at once
         message = str(exc) if isinstance(exc, Interrupted) else \
-            f"{algo}: stopped at once by a second signal: the last checkpoint in {out} is where --resume continues"
+            f"{algo}: interrupted: the last checkpoint in {out} is where --resume continues"
         print(message, file=sys.stderr)
         return exit_code(exc)
     print(f"{algo}: success rate {res['success_rate']:.2f} over {len(res['episodes'])} eval episodes, "

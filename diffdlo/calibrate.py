@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import time
 from typing import Any
 
 import torch
@@ -469,7 +470,6 @@ def plot_trajectories(sim: Simulator, moves: Moves, theta: torch.Tensor, path, c
 
 def main(argv: list[str] | None = None) -> int:
     import argparse
-    import time
     from pathlib import Path
 
     import yaml

@@ -65,8 +65,7 @@ def test_a_killed_run_resumes_exactly_with_its_normalizer_and_lr_schedule(algo, 
             raise KeyboardInterrupt
 
     monkeypatch.setattr(run_module, "save_checkpoint", save_then_die)
-    with pytest.raises(KeyboardInterrupt):
-        m.main(args(b))
+    assert m.main(args(b)) == 130           # reported as a shell reports Ctrl-C, not a traceback
     monkeypatch.setattr(run_module, "save_checkpoint", real_save)
     ck = torch.load(b / CHECKPOINT, weights_only=False)
     assert ck["step"] == 256

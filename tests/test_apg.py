@@ -201,8 +201,7 @@ def test_a_killed_run_resumes_exactly(extra, tmp_path, monkeypatch):
             raise KeyboardInterrupt
 
     monkeypatch.setattr(run_module, "save_checkpoint", save_then_die)
-    with pytest.raises(KeyboardInterrupt):
-        apg.main(argv(b, 256, *extra))
+    assert apg.main(argv(b, 256, *extra)) == 130     # reported as a shell reports Ctrl-C, not a traceback
     monkeypatch.setattr(run_module, "save_checkpoint", real_save)
     assert apg.main(["--out", str(b), "--resume", "--total-steps", "256", "--no-progress"]) == 0
     for name in ("train.csv", "eval.csv"):
