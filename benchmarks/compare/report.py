@@ -148,6 +148,10 @@ def _definitions(grid: dict[str, Any], loaded: list) -> list[str]:
               "rope-moves it backpropagated through the simulator in training. "
               "**Sim evals**: rope-moves simulated by a planner per episode (learners: none). "
               "**Wall**: seconds per cell (planners: and planning seconds per move).", ""]
+    labelled = [(m, spec["label"]) for m, spec in grid["methods"].items() if spec.get("label")]
+    if labelled:
+        lines += ["**Methods** (the tables' `method` column): " + "; ".join(f"`{m}`: {label}" for m, label in labelled)
+                  + ".", ""]
     if grid.get("budgets"):
         lines += [f"**Budgets.** {' '.join(grid['budgets'].split())}", ""]
     missing: dict[str, list[str]] = {}
