@@ -1,8 +1,7 @@
 """Signals as the user meant them: a learner and a planner started with SIGINT *ignored* (as from a shell's background
 job, nohup or a CI runner) still stop on SIGINT (and SIGTERM), with the shell's exit code and one line saying so. A
 learner stops at its next step with a regular checkpoint that --resume continues (saved where checkpoint_every
-saves: tests/test_kill.py checks that such a checkpoint resumes exactly). The calibration uses the same handlers
-(diffdlo.signals.stop_on_signals) as the planners."""
+saves: tests/test_kill.py checks that such a checkpoint resumes exactly). The calibration stops as the planners do."""
 import json
 import os
 import signal
@@ -68,3 +67,15 @@ def test_a_planner_stops_on_a_signal_though_started_with_sigint_ignored(sig, cod
     assert proc.returncode == code and f"cem: stopped by {signal.Signals(sig).name}" in err, err
     assert "Traceback" not in err
     assert not (out / ".lock").exists()                     # the lock is released: the folder is free again
+
+
+def test_the_calibration_stops_on_sigterm_though_started_with_sigint_ignored(tmp_path):
+    out = tmp_path / "cal"
+    proc = start_ignoring_sigint([sys.executable, "-m", "diffdlo.calibrate", "--synthetic", "--moves", "8",
+                                  "--iterations", "100000", "--method", "adam", "--no-progress", "--out", str(out)])
+    wait_for(out / ".lock", proc)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and "calibrate: stopped by SIGTERM" in err, err
+    assert "Traceback" not in err and not (out / "results.json").exists() and not (out / ".lock").exists()
