@@ -12,12 +12,15 @@ reaches is the bound the other methods are measured against (issue "fewer moves 
     python -m benchmarks.move_bound --out runs/move_bound --budgets 2x300x5 4x1000x10 --running-weights 0.5 0
 
 Resumable: each finished (budget, episode) is a line of ``episodes.jsonl`` under --out, skipped when rerun; the
-summary (``results.json``, ``moves_vs_evals.png``) is rewritten from all of them at the end.
+summary (``results.json``, ``moves_vs_evals.png``) is rewritten from all of them at the end (``--summary-only``:
+from the episodes finished so far, marked incomplete).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -123,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--eval-seed-base", type=int, default=10000)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument("--summary-only", action="store_true",
+                    help="run nothing: write the summary of the episodes finished so far (marked incomplete)")
     args = ap.parse_args(argv)
     try:
         for b in args.budgets:
@@ -138,10 +143,12 @@ def main(argv: list[str] | None = None) -> int:
     todo = [(b, w, args.eval_seed_base + 1000 * s + i) for b in args.budgets for w in args.running_weights
             for s in args.seeds for i in range(args.episodes)]
     try:
-        with out_lock(out), stop_on_signals():
+        # --summary-only reads the finished episodes and writes the summary only (atomically): no lock, so it can
+        # summarize a run still going
+        with (contextlib.nullcontext() if args.summary_only else out_lock(out)), stop_on_signals():
             done = [json.loads(x) for x in log.read_text().splitlines()] if log.exists() else []
             have = {(r["budget"], r["running_weight"], r["seed"]) for r in done}
-            left = [t for t in todo if t not in have]
+            left = [] if args.summary_only else [t for t in todo if t not in have]
             t0 = time.perf_counter()
             for b, w, seed in tqdm(left, desc="move bound", disable=args.no_progress):
                 row = run_one(b, w, args.target, seed, args.max_steps)
@@ -151,7 +158,13 @@ def main(argv: list[str] | None = None) -> int:
             wanted = {(b, w, s) for b, w, s in todo}
             rows = [r for r in done if (r["budget"], r["running_weight"], r["seed"]) in wanted]
             summary = summarize(rows)
-            write_json_atomic(out / "results.json", {"target": args.target, "seeds": args.seeds,
+            write_json_atomic(out / "results.json", {"command": shlex.join(["python", "-m", "benchmarks.move_bound",
+                                                                            *(argv if argv is not None else
+                                                                              sys.argv[1:])]),
+                                                     "target": args.target, "seeds": args.seeds,
+                                                     "complete": all(t in have or t in {(r["budget"],
+                                                                     r["running_weight"], r["seed"]) for r in done}
+                                                                     for t in todo),
                                                      "episodes_per_seed": args.episodes, "summary": summary,
                                                      "wall_s": time.perf_counter() - t0})
             plot(summary, out / "moves_vs_evals.png")

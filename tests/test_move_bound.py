@@ -24,6 +24,12 @@ def test_budgets_play_the_same_episodes_and_a_rerun_resumes(tmp_path, capsys):
     assert moves >= 2
     assert move_bound.main(argv) == 0                                                   # all done: nothing reruns
     assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 4
+    assert json.loads((tmp_path / "results.json").read_text())["complete"]
+    more = [*argv[:argv.index("--budgets")], "--budgets", "1x8x1", "3x8x1", *argv[argv.index("--max-steps"):]]
+    assert move_bound.main([*more, "--summary-only"]) == 0                              # runs nothing
+    res = json.loads((tmp_path / "results.json").read_text())
+    assert not res["complete"] and {s["budget"] for s in res["summary"]} == {"1x8x1"}
+    assert len((tmp_path / "episodes.jsonl").read_text().splitlines()) == 4
     with pytest.raises(SystemExit):
         move_bound.main(["--out", str(tmp_path), "--budgets", "2x300"])
     assert "HORIZONxCANDIDATESxITERATIONS" in capsys.readouterr().err

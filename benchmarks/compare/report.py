@@ -227,6 +227,30 @@ def _notes(grid: dict[str, Any]) -> list[str]:
     return [(ROOT / path).read_text().rstrip(), ""]
 
 
+def _bound(grid: dict[str, Any]) -> list[str]:
+    """The move bound (benchmarks/move_bound.py's committed results, the grid's ``bound`` file), if any: CEM at
+    growing budgets on the same episodes."""
+    path = grid.get("bound")
+    if not path or not (ROOT / path).exists():
+        return []
+    res = json.loads((ROOT / path).read_text())
+    seeds = " ".join(map(str, res["seeds"]))
+    lines = ["## How few moves: CEM at growing budgets", "",
+             f"CEM through the simulator on `{res['target']}`, seeds {seeds} × {res['episodes_per_seed']} episodes "
+             "(the grid's episodes), at several horizon × candidates × iterations budgets and two costs "
+             "(running_weight 0.5: every move's error counts, planners.cem's default; 0: only the state at the "
+             "horizon). **vs 2x300x5**: mean difference in moves against the default budget on the episodes both "
+             "solved (paired). Planning seconds were measured beside other jobs. Command: "
+             f"`{res.get('command', 'python -m benchmarks.move_bound')}`.", "",
+             "| budget | running_weight | episodes | success @1 cm | moves | vs 2x300x5 (paired; n) | sim evals / move "
+             "| s / move |", "|---|---|---|---|---|---|---|---|"]
+    for b in res["summary"]:
+        lines.append(f"| {b['budget']} | {b['running_weight']:g} | {b['episodes']} | {100 * b['success']:.0f} % | "
+                     f"{b['moves']:.2f} | {b['moves_vs_reference']:+.2f}; {b['paired']} | "
+                     f"{b['sim_evals_per_move']:,.0f} | {b['plan_s_per_move']:.2f} |")
+    return lines + [""]
+
+
 def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures: Path | str | None,
                  cells: list[dict[str, Any]] | None = None, records: list[dict[str, Any]] | None = None,
                  source: str | None = None) -> dict[str, Any]:
@@ -277,7 +301,7 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
                   *summary_table(grid, by_key), ""]
         summary = [n for n in names if n.endswith("summary.png")]
         lines += [f"![summary]({rel}/{n})" for n in summary] + ([""] if summary else [])
-        lines += _notes(grid) + paired_section(grid, by_key) + missing_section(grid, by_key)
+        lines += _notes(grid) + paired_section(grid, by_key) + _bound(grid) + missing_section(grid, by_key)
         lines += cpu_hours(grid, by_key)
     lines += _definitions(grid, loaded) + sections
     if costs:
