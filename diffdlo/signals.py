@@ -3,7 +3,8 @@
 A process started from a background job (``cmd &``, nohup, cron, many CI runners) inherits SIGINT as *ignored*, and
 Python then installs no KeyboardInterrupt handler: ``kill -INT`` would do nothing, and SIGTERM would end the process
 at once, mid-write. These context managers install the command's own handlers while it runs (and put the previous
-ones back after), so SIGINT, SIGTERM and SIGHUP always stop it through the same cleanup as Ctrl-C:
+ones back after), so SIGINT, SIGTERM and SIGHUP always stop it through the same cleanup as Ctrl-C (SIGHUP except
+where it was ignored on purpose: ``nohup`` keeps a run alive when its terminal closes):
 
 * ``stop_on_signals()``: the signal raises at once (KeyboardInterrupt; ``Terminated`` for SIGTERM/SIGHUP), for
   commands whose work is lost anyway (a planner's episode, a calibration);
@@ -53,7 +54,10 @@ def _handlers(handler) -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = {s: signal.signal(s, handler) for s in SIGNALS}
+    # SIGHUP ignored on purpose (nohup) stays ignored: a run started with nohup must outlive its terminal. SIGINT
+    # ignored is a shell's default for background jobs, not a request, so it is taken back.
+    chosen = [s for s in SIGNALS if not (s == signal.SIGHUP and signal.getsignal(s) == signal.SIG_IGN)]
+    old = {s: signal.signal(s, handler) for s in chosen}
     try:
         yield
     finally:

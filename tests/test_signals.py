@@ -79,3 +79,19 @@ def test_the_calibration_stops_on_sigterm_though_started_with_sigint_ignored(tmp
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143 and "calibrate: stopped by SIGTERM" in err, err
     assert "Traceback" not in err and not (out / "results.json").exists() and not (out / ".lock").exists()
+
+
+def test_nohup_is_respected_a_hangup_does_not_stop_a_run(tmp_path):
+    """SIGHUP ignored on purpose (nohup) stays ignored: the run outlives its terminal; SIGTERM still stops it."""
+    out = tmp_path / "cem"
+    proc = subprocess.Popen([sys.executable, "-m", "planners.cem", "--target", "random", "--episodes", "1000",
+                             "--quiet", "--no-gif", "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    wait_for(out / ".lock", proc)
+    proc.send_signal(signal.SIGHUP)
+    time.sleep(1.0)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and "stopped by SIGTERM" in err
