@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from diffdlo.files import out_lock, write_json_atomic
+from diffdlo.files import OutBusyError, out_lock, write_json_atomic
 from diffdlo.params import load_params
 from diffdlo.signals import exit_code, stop_on_signals
 from planners.cem import CEMPlanner
@@ -168,6 +168,9 @@ def main(argv: list[str] | None = None) -> int:
                                                      "episodes_per_seed": args.episodes, "summary": summary,
                                                      "wall_s": time.perf_counter() - t0})
             plot(summary, out / "moves_vs_evals.png")
+    except OutBusyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt as exc:
         print(f"move_bound: stopped by {exc or 'SIGINT'}: finished episodes are kept in {log}; rerun to continue",
               file=sys.stderr)
