@@ -294,8 +294,10 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
     names = figure_names(grid, done, costs)
     if grid.get("main"):
         lines += ["## Summary: success @1 cm · mean moves to success", "",
-                  "Each method at its best known settings on the main tasks (learners trained on `random`, their "
-                  "held-out columns evaluated after that training), then the rows from 64 px pictures. A cell: "
+                  "Each method at its best known settings on the main tasks, then the rows from 64 px pictures. A "
+                  "learner's held-out columns are its policy trained on "
+                  f"`{(grid.get('main') or {}).get('heldout_trained_on', 'random')}` (the family closest to those "
+                  "shapes), evaluated there after training; planners plan for each shape directly. A cell: "
                   "success over all its episodes · mean moves of the successful ones; fewer seeds than the grid's "
                   "are named. Details, intervals and commands: the per-task sections below.", "",
                   *summary_table(grid, by_key), ""]

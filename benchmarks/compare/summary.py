@@ -18,6 +18,11 @@ from .stats import t_interval
 PAIR_TOL = 1e-6          # m: two episodes with start errors this close (and the same target) are the same episode
 
 
+def heldout_source(grid: dict[str, Any]) -> str:
+    """The task a learner's held-out columns come from (the grid's main ``heldout_trained_on``; default random)."""
+    return (grid.get("main") or {}).get("heldout_trained_on", "random")
+
+
 def _episodes(grid: dict[str, Any], done: dict[tuple, dict], method: str, variant: str, task: str,
               trained_on: str) -> dict[tuple[int, int], dict]:
     """(seed, episode) -> episode record of one row on one task (a learner on a held-out shape: its evaluation
@@ -86,7 +91,7 @@ def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
             variant_targets = grid["methods"][method]["variants"][variant].get("targets", grid["targets"])
             for task in tasks:
                 held = task in grid.get("heldout", {}) and grid["methods"][method]["kind"] == "agent"
-                trained_on = "random" if held else task
+                trained_on = heldout_source(grid) if held else task
                 if (trained_on not in variant_targets) or (held and "eval_targets" not in
                                                            (grid["methods"][method]["variants"][variant].get("set")
                                                             or {})):
@@ -102,7 +107,7 @@ def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
 
 def readme_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
     """The README's short form of the summary, one line per main method: random, random_curve, the held-out shapes
-    pooled (learners: trained on random) and random from 64 px pictures (the method's image row), with its training
+    pooled (learners: trained on ``heldout_source``) and random from 64 px pictures (the method's image row), with its training
     env steps and the simulator moves of one episode (on random, from node positions)."""
     heldout = [t for t in (grid.get("main") or {}).get("targets", []) if t in grid.get("heldout", {})]
     n_all = len(grid["seeds"])
@@ -120,7 +125,7 @@ def readme_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
             texts.append(_cell_text(runs, n, n_all) if task in v.get("targets", grid["targets"]) else "")
         held_runs, seeds = [], set()
         for task in heldout:
-            source = "random" if agent else task
+            source = heldout_source(grid) if agent else task
             runs, _ = _row_runs(grid, done, method, variant, task, source)
             held_runs += runs
             seeds |= {s for s in grid["seeds"] if (method, variant, source, s) in done}
@@ -184,7 +189,7 @@ def paired_section(grid: dict[str, Any], done: dict[tuple, dict], reference: tup
                 continue
             for task in main.get("targets", []):
                 held = task in grid.get("heldout", {}) and grid["methods"][method]["kind"] == "agent"
-                a = _episodes(grid, done, method, variant, task, "random" if held else task)
+                a = _episodes(grid, done, method, variant, task, heldout_source(grid) if held else task)
                 b = _episodes(grid, done, *reference, task, task)
                 if not a or not b:
                     continue
