@@ -54,10 +54,9 @@ def budget_key(budget: str, weight: float) -> str:
     return f"{budget}@{weight:g}"
 
 
-def run_one(budget: str, weight: float, target: str, seed: int, max_steps: int) -> dict:
-    """One episode at one budget: success, moves, final error, sim evals and planning seconds."""
+def run_one(budget: str, weight: float, target: str, seed: int, max_steps: int, p) -> dict:
+    """One episode at one budget (cable params ``p``): success, moves, final error, sim evals and planning seconds."""
     h, c, i = parse_budget(budget)
-    p = load_params("cable")
     options = {"horizon": h, "candidates": c, "elites": max(1, c // 10), "iterations": i, "running_weight": weight}
     env, planner, _ = build_run(CEMPlanner, p, p, target, max_steps=max_steps, success_tol=None, device="cpu",
                                 seed=seed, options=options)
@@ -149,22 +148,22 @@ def main(argv: list[str] | None = None) -> int:
             done = [json.loads(x) for x in log.read_text().splitlines()] if log.exists() else []
             have = {(r["budget"], r["running_weight"], r["seed"]) for r in done}
             left = [] if args.summary_only else [t for t in todo if t not in have]
+            params = load_params("cable")                      # read once, not per episode
             t0 = time.perf_counter()
             for b, w, seed in tqdm(left, desc="move bound", disable=args.no_progress):
-                row = run_one(b, w, args.target, seed, args.max_steps)
+                row = run_one(b, w, args.target, seed, args.max_steps, params)
                 with open(log, "a") as fh:                     # one line per finished episode: resumable
                     fh.write(json.dumps(row) + "\n")
                 done.append(row)
-            wanted = {(b, w, s) for b, w, s in todo}
+            wanted = set(todo)
             rows = [r for r in done if (r["budget"], r["running_weight"], r["seed"]) in wanted]
             summary = summarize(rows)
             write_json_atomic(out / "results.json", {"command": shlex.join(["python", "-m", "benchmarks.move_bound",
                                                                             *(argv if argv is not None else
                                                                               sys.argv[1:])]),
                                                      "target": args.target, "seeds": args.seeds,
-                                                     "complete": all(t in have or t in {(r["budget"],
-                                                                     r["running_weight"], r["seed"]) for r in done}
-                                                                     for t in todo),
+                                                     "complete": wanted <= {(r["budget"], r["running_weight"],
+                                                                              r["seed"]) for r in done},
                                                      "episodes_per_seed": args.episodes, "summary": summary,
                                                      "wall_s": time.perf_counter() - t0})
             plot(summary, out / "moves_vs_evals.png")
