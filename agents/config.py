@@ -143,12 +143,16 @@ class RunOptions:
     eval_targets: list = dataclasses.field(default_factory=list)   # held-out targets evaluated at the end
     checkpoint_every: int = 10_000
     log_every: int = 100                  # updates (SAC, PlaNet) or rollouts (PPO) between train-loss rows
+    rollout_candidates: int = 0           # > 0: the final evaluations act by policy rollouts (agents/rollout.py)
+    rollout_moves: int = 20               # their horizon: moves the policy finishes each candidate with
 
     def check(self) -> None:
         check_types(self)
         for key in ("total_steps", "num_envs", "threads", "eval_every", "eval_episodes", "checkpoint_every",
                     "log_every"):
             _positive_int(key, getattr(self, key))
+        _positive_int("rollout_candidates", self.rollout_candidates, least=0)
+        _positive_int("rollout_moves", self.rollout_moves, least=0)
         for key in ("device", "env_device"):
             v = getattr(self, key)
             if key == "env_device" and not v:

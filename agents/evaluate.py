@@ -23,6 +23,7 @@ from agents.checkpoints import torch_threads
 from agents.envs import TrainEnv
 from agents.evaluation import evaluate, write_results
 from agents.policy import load_policy
+from agents.rollout import PolicyRollouts, check_rollout_obs
 from diffdlo.files import check_fresh_out, out_lock
 from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
 from diffdlo.task import resolve_target, target_label
@@ -65,6 +66,11 @@ def make_parser() -> OneLineParser:
     ap.add_argument("--no-gif", action="store_true", help="skip episodes.gif")
     ap.add_argument("--gif-episodes", type=count, default=3, help="episodes shown in the GIF (default 3)")
     ap.add_argument("--device", default="cpu", help="torch device of the networks, e.g. cpu (the default) or cuda")
+    ap.add_argument("--rollouts", type=lambda t: count(t, least=0), default=0, metavar="C",
+                    help="act by policy rollouts through the simulator with C candidate moves (agents/rollout.py; "
+                         "default 0: the policy alone)")
+    ap.add_argument("--rollout-moves", type=lambda t: count(t, least=0), default=20, metavar="K",
+                    help="with --rollouts: moves the policy finishes each candidate with (default 20)")
     return ap
 
 
@@ -140,6 +146,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 def evaluate_run(args: argparse.Namespace) -> int:
     policy = load_policy(args.run_dir, device=args.device)
     cfg = policy.config
+    if args.rollouts and policy.algo == "planet":
+        raise ValueError("--rollouts: PlaNet already plans; acting by policy rollouts is for sac, ppo and apg runs")
+    if args.rollouts:
+        check_rollout_obs(cfg.task.obs)
     params = cfg.task.cable_params()
     spec = cfg.task.target if args.target is None else args.target
     try:
@@ -156,16 +166,24 @@ def evaluate_run(args: argparse.Namespace) -> int:
         env = policy.make_env(num_envs=min(episodes, 32), target=spec)
         recorder = EpisodeRecorder(env.core, 0 if args.no_gif else args.gif_episodes)
         env = TrainEnv(recorder, device=env.device)
+        acting = policy.batched(env)
+        if args.rollouts:
+            acting = PolicyRollouts(acting, policy.env_kwargs(), args.rollouts, args.rollout_moves, seed=seed,
+                                    env_device=env.core.device, learner_device=env.device)
         t0 = time.perf_counter()
-        result = evaluate(policy.batched(env), env, episodes, seed=seed)
+        result = evaluate(acting, env, episodes, seed=seed)
         task = dataclasses.replace(cfg.task, target=spec if isinstance(spec, str) else label)
         write_results(out, policy.algo, task, seed, result, env_steps=policy.step, wall_s=time.perf_counter() - t0,
                       extra={"step": policy.step, "checkpoint": str(policy.checkpoint),
-                             "mean_final_error": result["mean_final_error"], "deterministic": True})
+                             "mean_final_error": result["mean_final_error"], "deterministic": True,
+                             **(acting.stats() if args.rollouts else {})})
         gif = None if args.no_gif else write_gif(out / "episodes.gif", recorder, result["targets"],
                                                  result["episodes"])
-    print(f"{policy.algo} at step {policy.step}: success rate {result['success_rate']:.2f} over {episodes} episodes "
-          f"on {label} (seed {seed}) -> {out}/results.json, eval_episodes.png" + (", episodes.gif" if gif else ""))
+    solved = [e["steps"] for e in result["episodes"] if e["success"]]
+    moves = f", {sum(solved) / len(solved):.2f} moves to success" if solved else ""
+    how = f" acting by {args.rollouts} rollouts of {args.rollout_moves} moves" if args.rollouts else ""
+    print(f"{policy.algo} at step {policy.step}{how}: success rate {result['success_rate']:.2f}{moves} over "
+          f"{episodes} episodes on {label} (seed {seed}) -> {out}/results.json, eval_episodes.png" + (", episodes.gif" if gif else ""))
     return 0
 
 

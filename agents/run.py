@@ -32,9 +32,11 @@ from tqdm import tqdm
 from agents.checkpoints import (CHECKPOINT, load_checkpoint, rng_state, save_checkpoint, seed_everything,
                                 set_rng_state, torch_threads)
 from agents.config import to_dict
-from agents.envs import make_env
-from agents.evaluation import eval_row, evaluate, evaluate_heldout, heldout_envs, write_results
+from agents.envs import env_kwargs, make_env
+from agents.evaluation import (EPISODE_KEYS, eval_row, evaluate, evaluate_heldout, heldout_envs,
+                               write_results)
 from agents.logs import EpisodeStats, Logger, fmt_postfix
+from agents.rollout import PolicyRollouts, check_rollout_obs
 from diffdlo.files import check_fresh_out, out_lock
 from diffdlo.signals import Interrupted, StopRequest, stop_at_boundary
 
@@ -72,6 +74,11 @@ class Run:
         self.device = torch.device(opts.device)
         seed_everything(opts.seed)
         self.params = task.cable_params()
+        if opts.rollout_candidates:
+            if algo == "planet":
+                raise ValueError("rollout_candidates: PlaNet already plans; acting by policy rollouts is for the "
+                                 "learners that act from the observation (sac, ppo, apg)")
+            check_rollout_obs(task.obs)
         self.env = make_env(task, opts, self.params, opts.num_envs)
         self.eval_env = make_env(task, opts, self.params, min(opts.eval_episodes, 32))
         self.heldout = heldout_envs(task, opts, self.params)
@@ -160,6 +167,19 @@ class Run:
             "last_ckpt": self.last_ckpt, "last_success": self.last_success, "result": self.result,
             "wall_s": self.wall_s(), "rng": rng_state()})
 
+    def act_by_rollouts(self, policy: Callable[[Any, bool], torch.Tensor], extra: dict[str, Any] | None
+                        ) -> tuple[PolicyRollouts, dict[str, Any]]:
+        """The final evaluation again, acting by policy rollouts (agents/rollout.py): it becomes the run's result;
+        the policy's own evaluation is kept in results.json as "policy_alone"."""
+        opts = self.cfg.run
+        acting = PolicyRollouts(policy, env_kwargs(self.cfg.task, self.params), opts.rollout_candidates,
+                                opts.rollout_moves, seed=opts.eval_seed,
+                                env_device=opts.env_device or opts.device, learner_device=self.device)
+        alone = {**eval_row(self.result), "episodes": [{k: e[k] for k in EPISODE_KEYS}
+                                                       for e in self.result["episodes"]]}
+        self.result = self.evaluate(acting)
+        return acting, {**(extra or {}), "policy_alone": alone}
+
     def wall_s(self) -> float:
         """Training and its evaluations so far, over every resumed part of the run."""
         return self.wall_before + time.perf_counter() - self.t0
@@ -179,6 +199,10 @@ class Run:
         wall = self.wall_s()
         if before_heldout is not None:
             before_heldout()
+        if self.cfg.run.rollout_candidates and policy is not None:
+            policy, extra = self.act_by_rollouts(policy, extra)
         held = evaluate_heldout(policy, self.heldout, self.cfg.run, policy_for=policy_for)
+        if isinstance(policy, PolicyRollouts):
+            extra.update(policy.stats())                # over the main and the held-out evaluations
         return write_results(self.out, self.algo, self.cfg.task, self.cfg.run.seed, self.result, self.step, wall,
                              heldout=held, extra=extra)
