@@ -38,7 +38,8 @@ from diffdlo.envs import BatchedShapeControl
 LEARNERS = {"sac": ("agents.sac", "SACConfig", "actor"),
             "ppo": ("agents.ppo", "PPOConfig", "agent"),
             "planet": ("agents.planet", "PlaNetConfig", "model"),
-            "apg": ("agents.apg", "APGConfig", "actor")}
+            "apg": ("agents.apg", "APGConfig", "actor"),
+            "distill": ("agents.distill", "DistillConfig", "agent")}
 
 BatchedPolicy = Callable[[Any, bool], torch.Tensor]
 
@@ -147,7 +148,8 @@ def apg_actor(cfg, ck: dict[str, Any], obs: Any, action_dim: int, path: Path) ->
     return _acting(actor, ck, "actor", path, actor.env_action)
 
 
-BUILDERS = {"sac": sac_actor, "ppo": ppo_agent, "planet": planet_model, "apg": apg_actor}
+BUILDERS = {"sac": sac_actor, "ppo": ppo_agent, "planet": planet_model, "apg": apg_actor,
+            "distill": ppo_agent}     # a distilled student is PPO's network (agents/distill.py)
 
 
 # ====================================================================== the policy

@@ -3,8 +3,8 @@
 Bertsekas's rollout algorithm (also "MPC with a base policy", Tesauro & Galperin's on-line policy improvement): at
 every move, try ``candidates`` first moves on copies of the rope in the simulator (the policy's own deterministic
 move and ``candidates - 1`` moves sampled from the policy), let the policy finish each copy deterministically for at
-most ``moves`` more moves, and make the first move of the copy that reached the target in the fewest moves (ties,
-and copies that did not reach it, ranked by their final shape error). On a deterministic simulator the chosen move's
+most ``moves`` more moves, and make the first move of the copy that reached the target in the fewest moves (among
+equals the policy's own move; copies that did not reach it ranked by their final shape error). On a deterministic simulator the chosen move's
 copy is exactly what the policy would then do, so the result takes no more moves than the policy alone on any
 episode where that copy succeeded within ``moves`` moves — the learned policy becomes a planner's search prior and
 its own value estimate, without any value network (a learned V, scored one move ahead, was tried first: its errors
@@ -124,8 +124,10 @@ def moves_to_success(env: TrainEnv, policy: Callable[[Any, bool], torch.Tensor],
 
 def rank(moves: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
     """(B, C) moves to success (inf: none) and final errors -> the index (B,) of each row's best candidate: the fewest
-    moves, then the lowest error; the first of equals (candidate 0 is the policy's own move)."""
+    moves; among equals the policy's own move (candidate 0) where it is one of them, else the lowest final error. A
+    sampled move replaces the policy's only where it saves a move (or where no copy reached the target)."""
     big = moves.nan_to_num(posinf=float(torch.finfo(torch.float64).max))
-    best_moves = big.min(1, keepdim=True).values
-    err = torch.where(big == best_moves, error, torch.full_like(error, float("inf")))
-    return err.argmin(1)
+    fewest = big == big.min(1, keepdim=True).values
+    err = torch.where(fewest, error, torch.full_like(error, float("inf")))
+    solved = torch.isfinite(moves).any(1)
+    return torch.where(fewest[:, 0] & solved, torch.zeros_like(solved, dtype=torch.int64), err.argmin(1))

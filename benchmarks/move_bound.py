@@ -158,9 +158,9 @@ def main(argv: list[str] | None = None) -> int:
             wanted = set(todo)
             rows = [r for r in done if (r["budget"], r["running_weight"], r["seed"]) in wanted]
             summary = summarize(rows)
+            given = [a for a in (argv if argv is not None else sys.argv[1:]) if a != "--summary-only"]
             write_json_atomic(out / "results.json", {"command": shlex.join(["python", "-m", "benchmarks.move_bound",
-                                                                            *(argv if argv is not None else
-                                                                              sys.argv[1:])]),
+                                                                            *given]),   # the run's own, resumable
                                                      "target": args.target, "seeds": args.seeds,
                                                      "complete": wanted <= {(r["budget"], r["running_weight"],
                                                                               r["seed"]) for r in done},

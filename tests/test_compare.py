@@ -355,3 +355,13 @@ def test_summary_names_missing_cells_with_their_cost():
     cem_cost = 27 * grid["methods"]["cem"]["variants"]["default"]["cpu_min"] / 60      # 2 + 5 x 5 cells
     assert f"| cem/default | 27 | random (3 4); random_curve (0 1 2 3 4);" in missing
     assert f" | {cem_cost:.1f} |" in missing
+
+
+def test_a_cell_that_reads_another_cells_run_names_its_own_seed_and_target():
+    from benchmarks.compare.grid import build_cells, load_grid
+    cells = build_cells(load_grid(), "runs/x", methods=["distill"], seeds=[1, 3])
+    assert [c["seed"] for c in cells] == [1, 3]
+    for c in cells:
+        i = c["argv"].index(f"teacher=runs/x/ppo/fewest_moves/{c['target']}/seed{c['seed']}")
+        assert c["argv"][i - 1] == "--set"
+    assert "{seed}" in cells[0]["grid_entry"]["set"]["teacher"]      # compare.yaml's entry, as written

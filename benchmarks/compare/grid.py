@@ -52,6 +52,18 @@ def _flags(args: dict[str, Any]) -> list[str]:
     return out
 
 
+def _filled(values: dict[str, Any] | None, **fields: Any) -> dict[str, Any]:
+    """A variant's args or set with ``{out}``, ``{target}`` and ``{seed}`` in its text values replaced by the cell's
+    (a cell that reads another cell's run, e.g. a distillation's teacher: "{out}/ppo/fewest_moves/{target}/seed{seed}")."""
+    def fill(v: Any) -> Any:
+        if not isinstance(v, str):
+            return v
+        for k, x in fields.items():
+            v = v.replace("{" + k + "}", str(x))
+        return v
+    return {k: fill(v) for k, v in (values or {}).items()}
+
+
 def grid_entry(grid: dict[str, Any], spec: dict[str, Any], variant: dict[str, Any]) -> dict[str, Any]:
     """What compare.yaml says of a cell: its variant's entry and the grid-wide settings it uses."""
     return {"kind": spec["kind"], "args": dict(variant.get("args") or {}), "set": dict(variant.get("set") or {}),
@@ -86,15 +98,17 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
                             "grid_entry": grid_entry(grid, spec, v)}   # stored in cell.json with the argv
                     if spec["kind"] == "agent" and target in grid.get("heldout", {}):
                         continue          # learners never train on a held-out shape (their rows: results "heldout")
+                    filled = {"args": _filled(v.get("args"), out=out, target=target, seed=seed),
+                              "set": _filled(v.get("set"), out=out, target=target, seed=seed)}
                     if spec["kind"] == "planner":
-                        base = ["-m", f"planners.{method}", *_flags(v.get("args")), "--quiet", "--no-gif"]
+                        base = ["-m", f"planners.{method}", *_flags(filled["args"]), "--quiet", "--no-gif"]
                         spec_target = grid.get("heldout", {}).get(target, target)       # a held-out name -> its file
                         cell["argv"] = base + ["--target", spec_target, "--seed", str(eval_seed), "--episodes",
                                                str(grid["episodes"]), "--out", str(d)]
                     else:
-                        sets = [x for k, val in (v.get("set") or {}).items() for x in ("--set", f"{k}={val}")]
+                        sets = [x for k, val in filled["set"].items() for x in ("--set", f"{k}={val}")]
                         cell["argv"] = ["-m", spec.get("module", f"agents.{method}"), "--target", target, "--seed", str(seed),
-                                        *_flags(v.get("args")), "--eval-episodes", str(grid["episodes"]),
+                                        *_flags(filled["args"]), "--eval-episodes", str(grid["episodes"]),
                                         "--set", f"eval_seed={eval_seed}", *sets, "--threads", "1", "--no-progress",
                                         "--out", str(d)]
                         if learner_device:
