@@ -60,7 +60,7 @@ def test_grid_is_data_and_filters_work(tmp_path):
     full = compare.load_grid(quick=False)
     cells = compare.build_cells(full, tmp_path)
     assert len(full["seeds"]) >= 5
-    assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "pets", "planet", "apg"}
+    assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "pets", "planet", "apg", "distill"}
     heldout = set(full["heldout"])
     # honest names: the ensemble world model is PETS-style, PlaNet is the RSSM; both run agents.planet
     pets, rssm = (compare.build_cells(full, tmp_path, methods=[m], targets=["random"], seeds=[0])[0]

@@ -8,6 +8,12 @@ from typing import Any
 import numpy as np
 
 
+def acting_sim_evals(runs: list[dict[str, Any]]) -> float:
+    """Rope-moves a learner simulates per move it makes: 0 for a policy acting alone, the rollouts' for one acting by
+    policy rollouts through the simulator (agents/rollout.py)."""
+    return float(np.mean([r.get("sim_evals_per_move", 0.0) for r in runs]))
+
+
 def row_cost(method: str, runs: list[dict[str, Any]], st: dict[str, Any]) -> dict[str, Any]:
     """Simulator moves and wall time of one row: to train (learners: training transitions, each one simulated
     move; planners: none) and per episode (learners: the moves they execute; planners: their simulated
@@ -19,7 +25,8 @@ def row_cost(method: str, runs: list[dict[str, Any]], st: dict[str, Any]) -> dic
                 "moves": moves, "success": st["s1"][0]}
     per = [r.get("eval_s_per_episode") for r in runs]
     per_s = float(np.mean(per)) if all(x is not None for x in per) else float("nan")
-    return {"train_moves": st["env_steps"], "train_s": st["wall"], "episode_moves": moves, "episode_s": per_s,
+    return {"train_moves": st["env_steps"], "train_s": st["wall"],
+            "episode_moves": moves * (1 + acting_sim_evals(runs)), "episode_s": per_s,
             "moves": moves, "success": st["s1"][0]}
 
 

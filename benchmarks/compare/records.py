@@ -58,7 +58,8 @@ def make_record(cell: dict[str, Any], res: dict[str, Any], meta: dict[str, Any])
     rec["argv"] = comparable_argv(meta.get("argv", cell["argv"]), meta.get("learner_device"))
     rec["machine"] = meta.get("machine")
     rec["learner_device"] = meta.get("learner_device")
-    for k in ("env_steps", "wall_s", "sim_evals", "plan_s_per_step", "eval_s_per_episode", "sim_backward"):
+    for k in ("env_steps", "wall_s", "sim_evals", "plan_s_per_step", "eval_s_per_episode", "sim_backward",
+              "sim_evals_per_move"):          # the last: a learner acting by rollouts (agents/rollout.py)
         if res.get(k) is not None:
             rec[k] = res[k]
     rec["episodes"] = [_episode(e) for e in res["episodes"]]

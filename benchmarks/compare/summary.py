@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from .costs import acting_sim_evals
 from .grid import main_rows, method_label
 from .stats import t_interval
 
@@ -72,7 +73,7 @@ def _costs(grid, done, method, variant, targets) -> tuple[str, str, str]:
     back = [r["sim_backward"] for r in cells if r.get("sim_backward") is not None]
     train = f"{steps:,.0f}" + (f" (+{np.mean(back):,.0f} backward)" if back else "")
     wall = float(np.mean([r["wall_s"] for r in cells]))
-    return train, f"{moves:.1f}", f"{wall / 60:.0f} min to train"
+    return train, f"{moves * (1 + acting_sim_evals(cells)):,.1f}", f"{wall / 60:.0f} min to train"
 
 
 def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
