@@ -170,7 +170,8 @@ class Run:
     def act_by_rollouts(self, policy: Callable[[Any, bool], torch.Tensor], extra: dict[str, Any] | None
                         ) -> tuple[PolicyRollouts, dict[str, Any]]:
         """The final evaluation again, acting by policy rollouts (agents/rollout.py): it becomes the run's result;
-        the policy's own evaluation is kept in results.json as "policy_alone"."""
+        the policy's own evaluation is kept in results.json as "policy_alone", the rollouts' cost on the task's
+        episodes (not the held-out ones') as "sim_evals_per_move"."""
         opts = self.cfg.run
         acting = PolicyRollouts(policy, env_kwargs(self.cfg.task, self.params), opts.rollout_candidates,
                                 opts.rollout_moves, seed=opts.eval_seed,
@@ -178,7 +179,7 @@ class Run:
         alone = {**eval_row(self.result), "episodes": [{k: e[k] for k in EPISODE_KEYS}
                                                        for e in self.result["episodes"]]}
         self.result = self.evaluate(acting)
-        return acting, {**(extra or {}), "policy_alone": alone}
+        return acting, {**(extra or {}), "policy_alone": alone, **acting.stats()}   # the stats of this evaluation
 
     def wall_s(self) -> float:
         """Training and its evaluations so far, over every resumed part of the run."""
@@ -202,7 +203,5 @@ class Run:
         if self.cfg.run.rollout_candidates and policy is not None:
             policy, extra = self.act_by_rollouts(policy, extra)
         held = evaluate_heldout(policy, self.heldout, self.cfg.run, policy_for=policy_for)
-        if isinstance(policy, PolicyRollouts):
-            extra.update(policy.stats())                # over the main and the held-out evaluations
         return write_results(self.out, self.algo, self.cfg.task, self.cfg.run.seed, self.result, self.step, wall,
                              heldout=held, extra=extra)
