@@ -107,7 +107,8 @@ def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
 
 
 def readme_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
-    """The README's short form of the summary, one line per main method: random, random_curve, the held-out shapes
+    """The README's short form of the summary, one line per main row (named by the variant's ``short``, else the
+    method's): random, random_curve, the held-out shapes
     pooled (learners: trained on ``heldout_source``) and random from 64 px pictures (the method's image row), with its training
     env steps and the simulator moves of one episode (on random, from node positions)."""
     heldout = [t for t in (grid.get("main") or {}).get("targets", []) if t in grid.get("heldout", {})]
@@ -116,6 +117,7 @@ def readme_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
     head = ["method", "random", "random_curve", f"held-out shapes ({len(heldout)})", "random, from 64 px pictures",
             "training env steps", "sim moves / episode"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    pictured: set[str] = set()
     for method, variant in main_rows(grid):
         spec = grid["methods"][method]
         agent = spec["kind"] == "agent"
@@ -133,13 +135,14 @@ def readme_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
         runs_there = ("eval_targets" in (v.get("set") or {})) if agent else \
             any(t in v.get("targets", grid["targets"]) for t in heldout)
         texts.append(_cell_text(held_runs, len(seeds), n_all) if held_runs else ("not run" if runs_there else ""))
-        if method in images:
+        if method in images and method not in pictured:       # a method's image row, beside its first main row
+            pictured.add(method)
             runs, n = _row_runs(grid, done, method, images[method], "random", "random")
             texts.append(_cell_text(runs, n, n_all))
         else:
             texts.append("")
         train, per_ep, _ = _costs(grid, done, method, variant, ["random"])
-        lines.append("| " + " | ".join([spec.get("short", method), *texts, train, per_ep]) + " |")
+        lines.append("| " + " | ".join([v.get("short", spec.get("short", method)), *texts, train, per_ep]) + " |")
     return lines
 
 
