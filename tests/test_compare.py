@@ -365,3 +365,17 @@ def test_a_cell_that_reads_another_cells_run_names_its_own_seed_and_target():
         i = c["argv"].index(f"teacher=runs/x/ppo/fewest_moves/{c['target']}/seed{c['seed']}")
         assert c["argv"][i - 1] == "--set"
     assert "{seed}" in cells[0]["grid_entry"]["set"]["teacher"]      # compare.yaml's entry, as written
+
+
+def test_a_learner_is_charged_the_simulation_it_acts_and_trains_with():
+    from benchmarks.compare.costs import row_cost
+    from benchmarks.compare.stats import row_stats
+    episode = {"success": True, "steps": 10, "final_error": 0.005, "start_error": 0.1, "target_name": "diagonal"}
+    alone = {"episodes": [episode] * 2, "env_steps": 1000, "wall_s": 60.0, "eval_s_per_episode": 0.01}
+    rollouts = {**alone, "sim_evals_per_move": 150.0}                      # agents/rollout.py
+    distilled = {**alone, "teacher_sim_evals": 5000}                        # agents/distill.py
+    cost = {name: row_cost("ppo", [r], row_stats([r])) for name, r in
+            [("alone", alone), ("rollouts", rollouts), ("distilled", distilled)]}
+    assert cost["alone"]["episode_moves"] == 10 and cost["alone"]["train_moves"] == 1000
+    assert cost["rollouts"]["episode_moves"] == 10 * (1 + 150)
+    assert cost["distilled"]["train_moves"] == 1000 + 5000 and cost["distilled"]["episode_moves"] == 10

@@ -25,7 +25,8 @@ def row_cost(method: str, runs: list[dict[str, Any]], st: dict[str, Any]) -> dic
                 "moves": moves, "success": st["s1"][0]}
     per = [r.get("eval_s_per_episode") for r in runs]
     per_s = float(np.mean(per)) if all(x is not None for x in per) else float("nan")
-    return {"train_moves": st["env_steps"], "train_s": st["wall"],
+    teacher = float(np.mean([r.get("teacher_sim_evals", 0.0) for r in runs]))      # a distilled policy's teacher
+    return {"train_moves": st["env_steps"] + teacher, "train_s": st["wall"],
             "episode_moves": moves * (1 + acting_sim_evals(runs)), "episode_s": per_s,
             "moves": moves, "success": st["s1"][0]}
 

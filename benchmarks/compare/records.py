@@ -59,7 +59,8 @@ def make_record(cell: dict[str, Any], res: dict[str, Any], meta: dict[str, Any])
     rec["machine"] = meta.get("machine")
     rec["learner_device"] = meta.get("learner_device")
     for k in ("env_steps", "wall_s", "sim_evals", "plan_s_per_step", "eval_s_per_episode", "sim_backward",
-              "sim_evals_per_move"):          # the last: a learner acting by rollouts (agents/rollout.py)
+              "sim_evals_per_move",           # a learner acting by rollouts (agents/rollout.py)
+              "teacher_sim_evals"):           # a distilled policy's teacher's rollouts in training (agents/distill.py)
         if res.get(k) is not None:
             rec[k] = res[k]
     rec["episodes"] = [_episode(e) for e in res["episodes"]]

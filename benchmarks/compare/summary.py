@@ -71,7 +71,9 @@ def _costs(grid, done, method, variant, targets) -> tuple[str, str, str]:
         return "—", f"{per_ep:,.0f}", f"{wall:.1f} s / episode"
     steps = float(np.mean([r["env_steps"] for r in cells]))
     back = [r["sim_backward"] for r in cells if r.get("sim_backward") is not None]
-    train = f"{steps:,.0f}" + (f" (+{np.mean(back):,.0f} backward)" if back else "")
+    teacher = [r["teacher_sim_evals"] for r in cells if r.get("teacher_sim_evals") is not None]
+    train = (f"{steps:,.0f}" + (f" (+{np.mean(back):,.0f} backward)" if back else "")
+             + (f" (+{np.mean(teacher):,.0f} teacher rollouts)" if teacher else ""))
     wall = float(np.mean([r["wall_s"] for r in cells]))
     return train, f"{moves * (1 + acting_sim_evals(cells)):,.1f}", f"{wall / 60:.0f} min to train"
 
