@@ -75,7 +75,9 @@ def _costs(grid, done, method, variant, targets) -> tuple[str, str, str]:
     train = (f"{steps:,.0f}" + (f" (+{np.mean(back):,.0f} backward)" if back else "")
              + (f" (+{np.mean(teacher):,.0f} teacher rollouts)" if teacher else ""))
     wall = float(np.mean([r["wall_s"] for r in cells]))
-    return train, f"{moves * (1 + acting_sim_evals(cells)):,.1f}", f"{wall / 60:.0f} min to train"
+    acting = acting_sim_evals(cells)
+    per_episode = f"{moves * (1 + acting):,.0f}" if acting else f"{moves:.1f}"
+    return train, per_episode, f"{wall / 60:.0f} min to train"
 
 
 def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
