@@ -50,7 +50,13 @@ class ValueLookahead:
         core.set_state(pos=obs["node_poses"].expand(c, -1, -1), target=obs["target_poses"][0], steps=0)
         _, reward, term, _, _ = core.step(moves.to(core.dtype))
         value = self.agent.value(self.copies.observe()).to(reward.dtype)
-        return moves[int((reward + self.gamma * (~term).to(reward.dtype) * value).argmax())][None]
+        return moves[int(one_move_score(reward, term, value, self.gamma).argmax())][None]
+
+
+def one_move_score(reward: torch.Tensor, terminated: torch.Tensor, value: torch.Tensor, gamma: float) -> torch.Tensor:
+    """TD-MPC's score at horizon 1: reward + gamma V(next state), with no bootstrap where the move ended the episode
+    (success, or a failure by leaving the table): there is no next state to value."""
+    return reward + gamma * (~terminated).to(reward.dtype) * value
 
 
 def play(acting: Callable, kwargs: dict[str, Any], seed: int, episodes: int) -> tuple[list[int], int, float]:

@@ -137,3 +137,15 @@ def test_planet_refuses_to_act_by_rollouts(tmp_path):
     cfg = from_flat(planet.PlaNetConfig, {"total_steps": 64, "rollout_candidates": 4})
     with pytest.raises(ValueError, match="PlaNet already plans"):
         planet.train(cfg, tmp_path / "run", progress=False)
+
+
+def test_the_value_lookahead_never_bootstraps_an_ended_move():
+    """benchmarks/value_lookahead.py's score by hand: a move that ended the episode scores its reward alone, however
+    large the critic's value of the state it reached."""
+    from benchmarks.value_lookahead import one_move_score
+    reward = torch.tensor([5.0, 1.0, 0.5], dtype=torch.float64)      # success bonus, a gain, a gain
+    ended = torch.tensor([True, False, False])
+    value = torch.tensor([100.0, 3.0, 4.0], dtype=torch.float64)
+    score = one_move_score(reward, ended, value, gamma=0.5)
+    assert score.tolist() == [5.0, 1.0 + 0.5 * 3.0, 0.5 + 0.5 * 4.0]
+    assert int(score.argmax()) == 0
