@@ -10,6 +10,7 @@ C="$PY -m benchmarks.compare --out runs/compare --jobs ${JOBS:-2} --no-report --
 MAIN="random random_curve arc s_curve hook wave"
 nice -n 10 $C --methods greedy cem gradient --variants default --targets $MAIN
 nice -n 10 $C --methods apg ppo --variants tuned
+nice -n 10 $C --methods ppo --variants fewest_moves
 nice -n 10 $C --methods cem ppo pets --variants tuned_image
 nice -n 10 $C --methods pets --variants tuned
 nice -n 10 $C --methods sac --variants tuned
@@ -19,3 +20,4 @@ nice -n 10 $C --methods planet --variants image
 nice -n 10 $C --methods greedy cem gradient --variants default --targets horizontal vertical diagonal antidiagonal
 nice -n 10 $C --methods apg --variants greedy h4 h4_critic score
 nice -n 10 $C --methods sac ppo --variants points abs_diff delta_gain
+nice -n 10 $C --methods distill                  # its teacher: the same seed's ppo/fewest_moves cell
