@@ -23,7 +23,7 @@ from agents.checkpoints import torch_threads
 from agents.envs import TrainEnv
 from agents.evaluation import evaluate, write_results
 from agents.policy import load_policy
-from agents.rollout import PolicyRollouts, check_rollout_obs
+from agents.rollout import PolicyRollouts, check_acts_by_rollouts
 from diffdlo.files import check_fresh_out, out_lock
 from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
 from diffdlo.task import resolve_target, target_label
@@ -146,10 +146,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 def evaluate_run(args: argparse.Namespace) -> int:
     policy = load_policy(args.run_dir, device=args.device)
     cfg = policy.config
-    if args.rollouts and policy.algo == "planet":
-        raise ValueError("--rollouts: PlaNet already plans; acting by policy rollouts is for sac, ppo and apg runs")
     if args.rollouts:
-        check_rollout_obs(cfg.task.obs)
+        try:
+            check_acts_by_rollouts(policy.algo, cfg.task.obs)
+        except ValueError as exc:
+            raise ValueError(f"--rollouts: {exc}") from None
     params = cfg.task.cable_params()
     spec = cfg.task.target if args.target is None else args.target
     try:
@@ -183,7 +184,8 @@ def evaluate_run(args: argparse.Namespace) -> int:
     moves = f", {sum(solved) / len(solved):.2f} moves to success" if solved else ""
     how = f" acting by {args.rollouts} rollouts of {args.rollout_moves} moves" if args.rollouts else ""
     print(f"{policy.algo} at step {policy.step}{how}: success rate {result['success_rate']:.2f}{moves} over "
-          f"{episodes} episodes on {label} (seed {seed}) -> {out}/results.json, eval_episodes.png" + (", episodes.gif" if gif else ""))
+          f"{episodes} episodes on {label} (seed {seed}) -> {out}/results.json, eval_episodes.png"
+          + (", episodes.gif" if gif else ""))
     return 0
 
 

@@ -79,6 +79,11 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
             "s_per_episode": (time.perf_counter() - t0) / len(episodes)}
 
 
+def episode_records(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The episodes as results.json keeps them (EPISODE_KEYS)."""
+    return [{k: e[k] for k in EPISODE_KEYS} for e in episodes]
+
+
 def heldout_envs(task: TaskOptions, run: RunOptions, params: CableParams) -> dict[str, tuple[Any, TrainEnv]]:
     """One evaluation env per entry of ``run.eval_targets`` (target shapes the learner does not train on, e.g.
     planners/targets/arc.npy), keyed by a label (the file's stem, or the name): label -> (spec, env). Built before
@@ -103,7 +108,7 @@ def evaluate_heldout(policy: Callable[[Any, bool], torch.Tensor] | None, envs: d
         r = evaluate(policy if policy_for is None else policy_for(env), env, run.eval_episodes, seed=run.eval_seed)
         out[label] = {"target": str(spec), "success_rate": r["success_rate"],
                       "mean_final_error": r["mean_final_error"], "shapes": first_shapes(r),
-                      "episodes": [{k: e[k] for k in EPISODE_KEYS} for e in r["episodes"]]}
+                      "episodes": episode_records(r["episodes"])}
     return out
 
 
@@ -128,7 +133,7 @@ def write_results(out: Path, method: str, task: TaskOptions, seed: int, result: 
     eps = result["episodes"]
     results = {"method": method, "target": task.target if isinstance(task.target, str) else "custom",
                "seed": seed, "success_rate": result["success_rate"],
-               "episodes": [{k: e[k] for k in EPISODE_KEYS} for e in eps],
+               "episodes": episode_records(eps),
                "env_steps": int(env_steps), "wall_s": float(wall_s),
                "mean_reward": result["mean_reward"], "mean_length": result["mean_length"],
                "eval_s_per_episode": result.get("s_per_episode"),

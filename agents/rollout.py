@@ -31,6 +31,14 @@ from diffdlo.envs import BatchedShapeControl
 ROLLOUT_OBS = ("points",)        # observations that show the rope and the target, so the simulator can copy them
 
 
+def check_acts_by_rollouts(algo: str, obs_type: str) -> None:
+    """ValueError unless a run of ``algo`` on observations ``obs_type`` can act by policy rollouts."""
+    if algo == "planet":
+        raise ValueError("PlaNet already plans; acting by policy rollouts is for the learners that act from the "
+                         "observation (sac, ppo, apg, distill)")
+    check_rollout_obs(obs_type)
+
+
 def check_rollout_obs(obs_type: str) -> None:
     if obs_type not in ROLLOUT_OBS:
         raise ValueError(f"acting by rollouts copies the rope and target from the observation: it needs obs "
@@ -87,9 +95,10 @@ class PolicyRollouts:
         core = env.core
         core.set_state(pos=pos.repeat_interleave(c, 0), target=target.repeat_interleave(c, 0), steps=0)
         _, _, term, trunc, info = core.step(cand.reshape(b * c, -1).to(core.device, core.dtype))
-        cost = moves_to_success(env, self.policy, info["is_success"].cpu(), (term | trunc).cpu(), self.moves)
-        self.sim_evals += int(cost.pop("sim_evals")) + b * c
-        best = rank(cost["moves"].reshape(b, c), cost["error"].reshape(b, c))
+        moves, error, evals = moves_to_success(env, self.policy, info["is_success"].cpu(), (term | trunc).cpu(),
+                                               self.moves)
+        self.sim_evals += evals + b * c
+        best = rank(moves.reshape(b, c), error.reshape(b, c))
         self.decisions += b
         self.wall_s += time.perf_counter() - t0
         return cand[torch.arange(b), best]
@@ -103,10 +112,10 @@ class PolicyRollouts:
 
 
 def moves_to_success(env: TrainEnv, policy: Callable[[Any, bool], torch.Tensor], success: torch.Tensor,
-                     ended: torch.Tensor, moves: int) -> dict[str, torch.Tensor]:
+                     ended: torch.Tensor, moves: int) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Let ``policy`` finish every rope of ``env`` (each has made one move: ``success``/``ended`` (n,) after it)
-    deterministically for at most ``moves`` more moves. Returns "moves" (n,) float: the moves to success counting the
-    first (inf where it never succeeded), "error" (n,) the final shape error [m], "sim_evals" the rope-moves made."""
+    deterministically for at most ``moves`` more moves. Returns the moves to success (n,) counting the first (inf
+    where it never succeeded), the final shape errors (n,) [m] and the rope-moves made."""
     core = env.core
     done_at = torch.where(success, 1.0, float("inf")).double()
     alive = ~ended
@@ -119,7 +128,7 @@ def moves_to_success(env: TrainEnv, policy: Callable[[Any, bool], torch.Tensor],
         evals += int(alive.sum())
         done_at[alive & info["is_success"].cpu()] = 2.0 + k
         alive &= ~(term | trunc).cpu()
-    return {"moves": done_at, "error": core.info()["shape_error"].cpu().double(), "sim_evals": torch.tensor(evals)}
+    return done_at, core.info()["shape_error"].cpu().double(), evals
 
 
 def rank(moves: torch.Tensor, error: torch.Tensor) -> torch.Tensor:

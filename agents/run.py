@@ -33,10 +33,10 @@ from agents.checkpoints import (CHECKPOINT, load_checkpoint, rng_state, save_che
                                 set_rng_state, torch_threads)
 from agents.config import to_dict
 from agents.envs import env_kwargs, make_env
-from agents.evaluation import (EPISODE_KEYS, eval_row, evaluate, evaluate_heldout, heldout_envs,
+from agents.evaluation import (episode_records, eval_row, evaluate, evaluate_heldout, heldout_envs,
                                write_results)
 from agents.logs import EpisodeStats, Logger, fmt_postfix
-from agents.rollout import PolicyRollouts, check_rollout_obs
+from agents.rollout import PolicyRollouts, check_acts_by_rollouts
 from diffdlo.files import check_fresh_out, out_lock
 from diffdlo.signals import Interrupted, StopRequest, stop_at_boundary
 
@@ -75,10 +75,10 @@ class Run:
         seed_everything(opts.seed)
         self.params = task.cable_params()
         if opts.rollout_candidates:
-            if algo == "planet":
-                raise ValueError("rollout_candidates: PlaNet already plans; acting by policy rollouts is for the "
-                                 "learners that act from the observation (sac, ppo, apg)")
-            check_rollout_obs(task.obs)
+            try:
+                check_acts_by_rollouts(algo, task.obs)
+            except ValueError as exc:
+                raise ValueError(f"rollout_candidates: {exc}") from None
         self.env = make_env(task, opts, self.params, opts.num_envs)
         self.eval_env = make_env(task, opts, self.params, min(opts.eval_episodes, 32))
         self.heldout = heldout_envs(task, opts, self.params)
@@ -176,8 +176,7 @@ class Run:
         acting = PolicyRollouts(policy, env_kwargs(self.cfg.task, self.params), opts.rollout_candidates,
                                 opts.rollout_moves, seed=opts.eval_seed,
                                 env_device=opts.env_device or opts.device, learner_device=self.device)
-        alone = {**eval_row(self.result), "episodes": [{k: e[k] for k in EPISODE_KEYS}
-                                                       for e in self.result["episodes"]]}
+        alone = {**eval_row(self.result), "episodes": episode_records(self.result["episodes"])}
         self.result = self.evaluate(acting)
         return acting, {**(extra or {}), "policy_alone": alone, **acting.stats()}   # the stats of this evaluation
 

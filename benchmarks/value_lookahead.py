@@ -21,6 +21,7 @@ from typing import Any, Callable
 import torch
 
 from agents.envs import TrainEnv, env_kwargs
+from agents.evaluation import evaluate
 from agents.policy import checkpoint_config, checkpoint_path, load_weights, read_checkpoint
 from agents.ppo import ActorCritic
 from agents.rollout import PolicyRollouts
@@ -59,23 +60,18 @@ def one_move_score(reward: torch.Tensor, terminated: torch.Tensor, value: torch.
     return reward + gamma * (~terminated).to(reward.dtype) * value
 
 
-def play(acting: Callable, kwargs: dict[str, Any], seed: int, episodes: int) -> tuple[list[int], int, float]:
-    """Episodes one rope at a time: the moves of each solved episode, the solved count, seconds per move."""
-    env = TrainEnv(BatchedShapeControl(1, **kwargs))
-    solved, wall, moves = [], 0.0, 0
-    for i in range(episodes):
-        obs = env.reset(seed=seed + i)
-        done, steps = False, 0
-        while not done:
-            t0 = time.perf_counter()
-            action = acting(obs, True)
-            wall += time.perf_counter() - t0
-            obs, _, term, trunc, info = env.core.step(action.to(env.core.dtype))
-            obs, steps, moves = env.to_learner(obs), steps + 1, moves + 1
-            done = bool(term[0] or trunc[0])
-        if bool(info["is_success"][0]):
-            solved.append(steps)
-    return solved, len(solved), wall / max(moves, 1)
+class Timed:
+    """An acting function that also counts its calls and their seconds (one call: one move of one rope)."""
+
+    def __init__(self, acting: Callable) -> None:
+        self.acting, self.calls, self.wall = acting, 0, 0.0
+
+    def __call__(self, obs: Any, deterministic: bool = True) -> torch.Tensor:
+        t0 = time.perf_counter()
+        action = self.acting(obs, deterministic)
+        self.wall += time.perf_counter() - t0
+        self.calls += 1
+        return action
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -87,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--eval-seed", type=int, default=None, help="default: the run's eval_seed")
     args = ap.parse_args(argv)
     if any(c < 1 for c in args.candidates) or args.episodes < 1 or args.rollouts < 0:
-        ap.error(f"--candidates must be >= 1 and --episodes >= 1, got {args.candidates} and {args.episodes}")
+        ap.error(f"--candidates and --episodes must be >= 1 and --rollouts >= 0, got --candidates {args.candidates}, "
+                 f"--episodes {args.episodes}, --rollouts {args.rollouts}")
     path = checkpoint_path(args.run_dir)
     try:
         ck = read_checkpoint(path)
@@ -108,15 +105,18 @@ def main(argv: list[str] | None = None) -> int:
     def alone(o, deterministic=True):
         with torch.no_grad():
             return agent.act(o, deterministic)
-    rows = [("policy alone", alone)]      # play() always asks for the deterministic move
+    rows = [("policy alone", alone)]
     rows += [(f"value lookahead, {c} candidates", ValueLookahead(agent, kwargs, c, cfg.gamma)) for c in args.candidates]
     if args.rollouts:
         rows.append((f"policy rollouts, {args.rollouts} x 20", PolicyRollouts(alone, kwargs, args.rollouts, 20, seed)))
     print(f"{path} (gamma {cfg.gamma}), episodes {seed}..{seed + args.episodes - 1}:")
-    for name, acting in rows:
-        solved, n, s_per_move = play(acting, kwargs, seed, args.episodes)
-        mean = f"{sum(solved) / n:.2f}" if n else "-"
-        print(f"  {name:34s} success {n}/{args.episodes}  moves {mean:>6s}  {1000 * s_per_move:7.1f} ms/move")
+    for name, acting in rows:                           # one rope at a time: a call is one move's latency
+        timed = Timed(acting)
+        episodes = evaluate(timed, TrainEnv(BatchedShapeControl(1, **kwargs)), args.episodes, seed=seed)["episodes"]
+        solved = [e["steps"] for e in episodes if e["success"]]
+        mean = f"{sum(solved) / len(solved):.2f}" if solved else "-"
+        print(f"  {name:34s} success {len(solved)}/{args.episodes}  moves {mean:>6s}  "
+              f"{1000 * timed.wall / max(timed.calls, 1):7.1f} ms/move")
     return 0
 
 
