@@ -166,13 +166,13 @@ class Setup:
                                 self.record_every, self.frame_cap], dtype=torch.int64)
 
 
-def physics_columns(p, physics, batch: int) -> torch.Tensor:
-    """(B, 4) float64 k_s, k_b, 1 / node_mass, 1 / (1 + dt k_d / node_mass) of a Physics (floats or (B,)/() tensors),
-    differentiable where its tensors are."""
+def physics_columns(p, physics, batch: int, device="cpu", dtype=torch.float64) -> torch.Tensor:
+    """(B, 4) k_s, k_b, 1 / node_mass, 1 / (1 + dt k_d / node_mass) of a Physics (floats or (B,)/() tensors),
+    differentiable where its tensors are; float64 on the CPU (this kernel's) unless told."""
     def column(v):
         if torch.is_tensor(v):
-            return torch.broadcast_to(v.to(device="cpu", dtype=torch.float64), (batch,))
-        return torch.full((batch,), float(v), dtype=torch.float64)
+            return torch.broadcast_to(v.to(device=device, dtype=dtype), (batch,))
+        return torch.full((batch,), float(v), dtype=dtype, device=device)
 
     k_s, k_b, k_d, mass = (column(getattr(physics, key)) for key in ("k_s", "k_b", "k_d", "mass"))
     node_mass = mass / p.n_nodes

@@ -336,16 +336,8 @@ class Simulator:
         return pos, vel, grasp_steps_cpu, finished_at, settled, frames
 
     def _triton_apply(self, pos, vel, node, delta, path_steps, fixed_steps, physics):
-        batch = pos.shape[0]
-        if physics is None:
-            ks = kb = kd = mass = None
-        else:
-            ks, kb, kd, mass = triton_kernel._physics_tensors(physics, batch, pos.device, pos.dtype)
-        if node is None:
-            node = torch.zeros(batch, dtype=torch.int64, device=pos.device)
-            path_steps = node
-            delta = torch.zeros(batch, 2, dtype=pos.dtype, device=pos.device)
-        return triton_kernel.TritonMove.apply(self, pos, vel, node, delta, path_steps, fixed_steps, ks, kb, kd, mass)
+        phys = triton_kernel.columns(self.params, physics, pos.shape[0], pos.device, pos.dtype)
+        return triton_kernel.TritonMove.apply(self, pos, vel, node, delta, path_steps, fixed_steps, phys)
 
     def _move_triton(self, pos, vel, node, delta, path_steps, return_info, physics=None):
         pos, _, steps, settled, diverged = self._triton_apply(pos, vel, node, delta, path_steps, -1, physics)

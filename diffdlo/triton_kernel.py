@@ -13,11 +13,18 @@ physics (k_s, k_b, 1 / node mass, damping factor; ``kernel.physics_columns``) ar
 (the params' numbers repeated when none are given). Same semantics as the C++ kernel: steps, settled and
 diverged flags per rope, and ``fixed_steps`` >= 0 for free evolution (``integrate``).
 
-Backward: NOT a Triton adjoint. ``TritonMove.backward`` recomputes the move on the eager torch path
-(``Simulator._move_eager`` / ``integrate``'s substep loop, the reference scheme) under autograd and returns its
-vector-Jacobian product: exact gradients of the same scheme (the forward outputs agree to rounding), but the
-backward runs at eager speed on the device. A Triton adjoint mirroring cable.cpp's (recomputed trajectory + the
-analytic energy Hessian-vector product) is the next step.
+Backward: one launch of ``_adjoint_kernel``, the tile form of cable.cpp's adjoint. When a gradient is wanted the
+forward also keeps each rope's state every ``chunk_substeps(K)`` substeps (K the longest possible move, the chunk
+the power of two >= sqrt(K): 64 for a 2,001-substep move). The adjoint takes the chunks last first: it recomputes
+one chunk from its checkpoint into a per-program scratch buffer, then sweeps back through it with the analytic
+Hessian-vector product of the energy, each rope over its own substeps only. Memory is the checkpoints plus one
+chunk per block of ropes, about 2 sqrt(K) states per rope instead of K; the work is one recomputed forward plus the
+adjoint sweep. It returns the gradients w.r.t. the start positions and velocities, the drag (its reference speed
+included) and the per-rope physics columns, which autograd carries on to k_s, k_b, k_d and mass.
+
+The kernels read l0, h and the thresholds from a tensor in the state's dtype: Triton passes Python floats as
+float32, and ``tl.where`` of two float literals is float32 too, which would round a float64 move (the forward then
+matched the eager path to 2e-11 m; now to rounding, 1e-17).
 
 Not supported here (the simulator then uses the eager torch path, ``Simulator.triton_unsupported`` says why):
 frame recording (``record_every`` > 0 with ``return_info``), the PID controller.
@@ -27,6 +34,7 @@ against the eager path on a machine without a GPU.
 """
 from __future__ import annotations
 
+import math
 import os
 
 import torch
@@ -85,8 +93,9 @@ if triton is not None:
         den = tl.where(swap, ay, ax)
         t = tl.where(den > 0, num / tl.where(den > 0, den, 1.0), 0.0)
         big = t > 0.66
-        base = tl.where(big, 0.78539816339744830962, 0.0)
-        more = tl.where(big, 0.5 * 6.123233995736765886130E-17, 0.0)
+        bigf = tl.where(big, 1.0, 0.0).to(t.dtype)   # where(big, pi/4, 0) of two literals would be float32
+        base = bigf * 0.78539816339744830962
+        more = bigf * (0.5 * 6.123233995736765886130E-17)
         t = tl.where(big, (t - 1.0) / (t + 1.0), t)
         z = t * t
         p = (((-8.750608600031904122785E-1 * z + -1.615753718733365076637E1) * z
@@ -99,10 +108,103 @@ if triton is not None:
         return tl.where(y < 0, -r, r)
 
     @triton.jit
-    def _move_kernel(pos_ptr, vel_ptr, node_ptr, delta_ptr, speed_ptr, ngrasp_ptr, phys_ptr,
-                     out_pos_ptr, out_vel_ptr, steps_ptr, settled_ptr, diverged_ptr,
-                     B, l0, h, threshold, radius, check_every, max_settle, fixed_steps,
-                     N: tl.constexpr, N_PAD: tl.constexpr, BLOCK: tl.constexpr, FIXED: tl.constexpr):
+    def _links(x, y, link, inner, nxt, prv):
+        """Link vectors e_j = x_{j+1} - x_j, their squared lengths (1 off the links) and the turning angle at each
+        interior node j (0 elsewhere), for [R, N_PAD] tiles."""
+        ex = tl.where(link, tl.gather(x, nxt, axis=1) - x, 0.0)
+        ey = tl.where(link, tl.gather(y, nxt, axis=1) - y, 0.0)
+        len2 = tl.where(link, ex * ex + ey * ey, 1.0)
+        pex = tl.gather(ex, prv, axis=1)                           # incoming link of node j
+        pey = tl.gather(ey, prv, axis=1)
+        beta = tl.where(inner, _atan2(pex * ey - pey * ex, pex * ex + pey * ey), 0.0)
+        return ex, ey, len2, beta
+
+    @triton.jit
+    def _substep(x, y, vx, vy, k, live, ks, kb, hm, damp, l0, h, jj, link, inner, nxt, prv,
+                 on_path, sx, sy, dx, dy, sp, safe):
+        """Substep k of a move for the ropes and nodes in ``live`` (the others keep their state): internal forces,
+        semi-implicit Euler with implicit damping, then the grasped node (``on_path``) put on its reference path.
+        Mirrors diffdlo/forces.py, integrate.py and control.reference (and cable.cpp's substep)."""
+        ex, ey, len2, beta = _links(x, y, link, inner, nxt, prv)
+        beta_end = tl.where(link, tl.gather(beta, nxt, axis=1), 0.0)                     # angle at node j + 1
+        a = ks * (1.0 - l0 / tl.sqrt(len2))
+        b = kb * (beta - beta_end) / len2
+        gx = tl.where(link, a * ex - b * ey, 0.0)
+        gy = tl.where(link, a * ey + b * ex, 0.0)
+        fx = gx - tl.where(jj > 0, tl.gather(gx, prv, axis=1), 0.0)
+        fy = gy - tl.where(jj > 0, tl.gather(gy, prv, axis=1), 0.0)
+        nvx = (vx + hm * fx) * damp
+        nvy = (vy + hm * fy) * damp
+        nx = x + h * nvx
+        ny = y + h * nvy
+        frac = tl.minimum(k * h * sp / safe, 1.0)
+        frac_prev = tl.minimum((k - 1) * h * sp / safe, 1.0)
+        rvel = (frac - frac_prev) / h
+        zero2 = x * 0.0
+        nx = tl.where(on_path, (sx + frac * dx)[:, None] + zero2, nx)
+        ny = tl.where(on_path, (sy + frac * dy)[:, None] + zero2, ny)
+        nvx = tl.where(on_path, (rvel * dx)[:, None] + zero2, nvx)
+        nvy = tl.where(on_path, (rvel * dy)[:, None] + zero2, nvy)
+        return (tl.where(live, nx, x), tl.where(live, ny, y), tl.where(live, nvx, vx), tl.where(live, nvy, vy))
+
+    @triton.jit
+    def _hvp(x, y, ux, uy, ks, kb, l0, jj, link, inner, nxt, prv):
+        """Hessian-vector product H u of the energy at (x, y), and u . F_s, u . F_b (F = k_s F_s + k_b F_b the
+        internal forces) per rope: the tile form of cable.cpp's hvp. Link k's gradient dE/de_k = k_s (1 - l0/l) e +
+        k_b (beta_start - beta_end) q(e), q(e) = perp(e) / |e|^2; its derivative along we = u_{k+1} - u_k is
+        k_s [(1 - l0/l) we + l0/l^3 (e.we) e] + k_b [(dbeta_start - dbeta_end) q + (beta_start - beta_end) dq], with
+        dbeta_j = q(e_j).we_j - q(e_{j-1}).we_{j-1} and dq = perp(we)/l^2 - 2 (e.we) perp(e)/l^4."""
+        ex, ey, len2, beta = _links(x, y, link, inner, nxt, prv)
+        wex = tl.where(link, tl.gather(ux, nxt, axis=1) - ux, 0.0)
+        wey = tl.where(link, tl.gather(uy, nxt, axis=1) - uy, 0.0)
+        qw = tl.where(link, (ex * wey - ey * wex) / len2, 0.0)                           # q(e_k) . we_k
+        dbeta = tl.where(inner, qw - tl.gather(qw, prv, axis=1), 0.0)
+        dbend = tl.where(link, beta - tl.gather(beta, nxt, axis=1), 0.0)                  # beta_start - beta_end
+        ddbend = tl.where(link, dbeta - tl.gather(dbeta, nxt, axis=1), 0.0)
+        ln = tl.sqrt(len2)
+        stretch = 1.0 - l0 / ln
+        edotw = ex * wex + ey * wey
+        c = ks * l0 / (ln * len2)
+        l4 = len2 * len2
+        qx = -ey / len2
+        qy = ex / len2
+        dqx = -wey / len2 + 2.0 * edotw * ey / l4
+        dqy = wex / len2 - 2.0 * edotw * ex / l4
+        gx = tl.where(link, ks * stretch * wex + c * edotw * ex + kb * (ddbend * qx + dbend * dqx), 0.0)
+        gy = tl.where(link, ks * stretch * wey + c * edotw * ey + kb * (ddbend * qy + dbend * dqy), 0.0)
+        hux = tl.where(jj > 0, tl.gather(gx, prv, axis=1), 0.0) - gx                     # (H u)_j = dG_{j-1} - dG_j
+        huy = tl.where(jj > 0, tl.gather(gy, prv, axis=1), 0.0) - gy
+        dot_s = -tl.sum(tl.where(link, stretch * edotw, 0.0), axis=1)
+        dot_b = -tl.sum(tl.where(link, dbend * qw, 0.0), axis=1)
+        return hux, huy, dot_s, dot_b
+
+    @triton.jit
+    def _path_adjoint(k, dx, dy, sp, safe, h, vmax, ax, ay, cx, cy):
+        """Gradient w.r.t. the drag (dx, dy) of the reference position and velocity at substep k, whose adjoints
+        are (ax, ay), (cx, cy) (cable.cpp's reference_adjoint). frac_k = min(1, k h s / |d|): with s = vmax (slow
+        drags) d frac / d d = -frac d / |d|^2 while unclamped; a fast drag (s = |d| / (max_drag h)) has a constant
+        frac."""
+        slow = ~(sp > vmax)
+        raw = k * h * sp / safe
+        raw_prev = (k - 1) * h * sp / safe
+        frac = tl.minimum(raw, 1.0)
+        frac_prev = tl.minimum(raw_prev, 1.0)
+        dfrac = tl.where(slow & (raw <= 1.0), -raw / safe, 0.0)
+        dprev = tl.where(slow & (raw_prev <= 1.0), -raw_prev / safe, 0.0)
+        adot = ax * dx + ay * dy
+        cdot = cx * dx + cy * dy
+        ux = dx / safe
+        uy = dy / safe
+        gdx = frac * ax + adot * dfrac * ux + ((frac - frac_prev) * cx + cdot * (dfrac - dprev) * ux) / h
+        gdy = frac * ay + adot * dfrac * uy + ((frac - frac_prev) * cy + cdot * (dfrac - dprev) * uy) / h
+        return gdx, gdy
+
+    @triton.jit
+    def _move_kernel(pos_ptr, vel_ptr, node_ptr, delta_ptr, speed_ptr, ngrasp_ptr, phys_ptr, scalar_ptr,
+                     out_pos_ptr, out_vel_ptr, steps_ptr, settled_ptr, diverged_ptr, ckpt_ptr,
+                     B, check_every, max_settle, fixed_steps, slots,
+                     N: tl.constexpr, N_PAD: tl.constexpr, BLOCK: tl.constexpr, FIXED: tl.constexpr,
+                     SAVE: tl.constexpr, CHUNK: tl.constexpr):
         pid = tl.program_id(0)
         rope = pid * BLOCK + tl.arange(0, BLOCK)                   # [R]
         rmask = rope < B
@@ -119,12 +221,14 @@ if triton is not None:
         y = tl.load(pos_ptr + offs + 1, mask=nmask, other=0.0)
         vx = tl.load(vel_ptr + offs, mask=nmask, other=0.0)
         vy = tl.load(vel_ptr + offs + 1, mask=nmask, other=0.0)
-        zero2 = x * 0.0
-        ks = tl.load(phys_ptr + rope64 * 4, mask=rmask, other=1.0).to(x.dtype)[:, None]
-        kb = tl.load(phys_ptr + rope64 * 4 + 1, mask=rmask, other=0.0).to(x.dtype)[:, None]
-        inv_m = tl.load(phys_ptr + rope64 * 4 + 2, mask=rmask, other=1.0).to(x.dtype)[:, None]
-        damp = tl.load(phys_ptr + rope64 * 4 + 3, mask=rmask, other=1.0).to(x.dtype)[:, None]
-        hm = h * inv_m
+        l0 = tl.load(scalar_ptr)
+        h = tl.load(scalar_ptr + 1)
+        threshold = tl.load(scalar_ptr + 2)
+        radius = tl.load(scalar_ptr + 3)
+        ks = tl.load(phys_ptr + rope64 * 4, mask=rmask, other=1.0)[:, None]
+        kb = tl.load(phys_ptr + rope64 * 4 + 1, mask=rmask, other=0.0)[:, None]
+        hm = h * tl.load(phys_ptr + rope64 * 4 + 2, mask=rmask, other=1.0)[:, None]
+        damp = tl.load(phys_ptr + rope64 * 4 + 3, mask=rmask, other=1.0)[:, None]
         g = tl.load(node_ptr + rope, mask=rmask, other=0).to(tl.int32)          # [R]
         ng = tl.load(ngrasp_ptr + rope, mask=rmask, other=0).to(tl.int32)
         dx = tl.load(delta_ptr + rope64 * 2, mask=rmask, other=0.0)
@@ -134,6 +238,12 @@ if triton is not None:
         grasped = jj == g[:, None]
         sx = tl.sum(tl.where(grasped, x, 0.0), axis=1)
         sy = tl.sum(tl.where(grasped, y, 0.0), axis=1)
+        ckpt = rope64[:, None] * (slots * 4 * N) + jj              # checkpoint slot 0 of rope r, x of node j
+        if SAVE:
+            tl.store(ckpt_ptr + ckpt, x, mask=nmask)
+            tl.store(ckpt_ptr + ckpt + N, y, mask=nmask)
+            tl.store(ckpt_ptr + ckpt + 2 * N, vx, mask=nmask)
+            tl.store(ckpt_ptr + ckpt + 3 * N, vy, mask=nmask)
 
         active = rmask
         steps = tl.zeros([BLOCK], tl.int32)
@@ -143,44 +253,21 @@ if triton is not None:
         running = tl.max(active.to(tl.int32), axis=0) > 0
         while running:
             k += 1
-            # ---- internal forces at the current positions
-            ex = tl.where(link, tl.gather(x, nxt, axis=1) - x, 0.0)
-            ey = tl.where(link, tl.gather(y, nxt, axis=1) - y, 0.0)
-            len2 = tl.where(link, ex * ex + ey * ey, 1.0)
-            pex = tl.gather(ex, prv, axis=1)                       # incoming link of node j
-            pey = tl.gather(ey, prv, axis=1)
-            beta = tl.where(inner, _atan2(pex * ey - pey * ex, pex * ex + pey * ey), 0.0)   # angle at node j
-            beta_end = tl.where(link, tl.gather(beta, nxt, axis=1), 0.0)                     # angle at node j + 1
-            a = ks * (1.0 - l0 / tl.sqrt(len2))
-            b = kb * (beta - beta_end) / len2
-            gx = tl.where(link, a * ex - b * ey, 0.0)
-            gy = tl.where(link, a * ey + b * ex, 0.0)
-            fx = gx - tl.where(jj > 0, tl.gather(gx, prv, axis=1), 0.0)
-            fy = gy - tl.where(jj > 0, tl.gather(gy, prv, axis=1), 0.0)
-            # ---- semi-implicit Euler with implicit damping
-            nvx = (vx + hm * fx) * damp
-            nvy = (vy + hm * fy) * damp
-            nx = x + h * nvx
-            ny = y + h * nvy
-            # ---- kinematic grasp along the reference path
-            frac = tl.minimum(k * h * sp / safe, 1.0)
-            frac_prev = tl.minimum((k - 1) * h * sp / safe, 1.0)
-            on_path = grasped & (k <= ng)[:, None]
-            rvel = (frac - frac_prev) / h
-            nx = tl.where(on_path, (sx + frac * dx)[:, None] + zero2, nx)
-            ny = tl.where(on_path, (sy + frac * dy)[:, None] + zero2, ny)
-            nvx = tl.where(on_path, (rvel * dx)[:, None] + zero2, nvx)
-            nvy = tl.where(on_path, (rvel * dy)[:, None] + zero2, nvy)
             live = active[:, None] & nmask
-            x = tl.where(live, nx, x)
-            y = tl.where(live, ny, y)
-            vx = tl.where(live, nvx, vx)
-            vy = tl.where(live, nvy, vy)
+            x, y, vx, vy = _substep(x, y, vx, vy, k, live, ks, kb, hm, damp, l0, h, jj, link, inner, nxt, prv,
+                                    grasped & (k <= ng)[:, None], sx, sy, dx, dy, sp, safe)
+            if SAVE:
+                if k % CHUNK == 0:                                 # the state after substep k, for the adjoint
+                    at = ckpt + (k // CHUNK) * (4 * N)
+                    tl.store(ckpt_ptr + at, x, mask=live)
+                    tl.store(ckpt_ptr + at + N, y, mask=live)
+                    tl.store(ckpt_ptr + at + 2 * N, vx, mask=live)
+                    tl.store(ckpt_ptr + at + 3 * N, vy, mask=live)
             # ---- stop rules
             far = (~(tl.abs(x) <= radius)) | (~(tl.abs(y) <= radius))
             bad = tl.max(tl.where(nmask & far, 1, 0), axis=1) > 0
             if FIXED:
-                stop = (k >= fixed_steps) | (rope < 0)
+                stop = (rope * 0 + k) >= fixed_steps                # a vector: (bool | vector) is int32 interpreted
                 div_now = stop & bad
                 set_now = rope < 0
             else:
@@ -205,27 +292,185 @@ if triton is not None:
         tl.store(settled_ptr + rope, settled.to(tl.int8), mask=rmask)
         tl.store(diverged_ptr + rope, diverged.to(tl.int8), mask=rmask)
 
+    @triton.jit
+    def _adjoint_kernel(pos_ptr, node_ptr, delta_ptr, speed_ptr, ngrasp_ptr, phys_ptr, scalar_ptr, steps_ptr,
+                        ckpt_ptr, scratch_ptr, gpos_ptr, gvel_ptr, out_gpos_ptr, out_gvel_ptr, out_gdelta_ptr,
+                        out_gphys_ptr, B, slots,
+                        N: tl.constexpr, N_PAD: tl.constexpr, BLOCK: tl.constexpr, CHUNK: tl.constexpr,
+                        PHYS: tl.constexpr, NC: tl.constexpr):
+        """The move's vector-Jacobian product, backwards over each rope's own substeps. The trajectory comes back
+        chunk by chunk, last chunk first: the forward's checkpoint at the chunk's start, CHUNK substeps recomputed
+        into this program's scratch, then the adjoint swept back through them. Per substep (x_k = x_{k-1} + h v_k,
+        v_k = damp (v_{k-1} + h/m F(x_{k-1})), F = -grad E): u = g_v + h g_x, g_x -= (h damp / m) H(x_{k-1}) u,
+        g_v = damp u; while the node is on its path, the adjoints of its overwritten position and velocity go to the
+        drag and the grasp start instead. With PHYS, also the gradients w.r.t. k_s, k_b, 1/m and damp. NC: scratch
+        planes per substep (x, y; and vx, vy with PHYS)."""
+        pid = tl.program_id(0)
+        rope = pid * BLOCK + tl.arange(0, BLOCK)
+        rmask = rope < B
+        j = tl.arange(0, N_PAD)
+        jj = j[None, :] + tl.zeros([BLOCK, N_PAD], tl.int32)
+        nmask = rmask[:, None] & (jj < N)
+        link = (jj < N - 1) & rmask[:, None]
+        inner = (jj >= 1) & (jj < N - 1)
+        nxt = tl.minimum(jj + 1, N_PAD - 1)
+        prv = tl.maximum(jj - 1, 0)
+        rope64 = rope.to(tl.int64)
+        offs = rope64[:, None] * (2 * N) + 2 * jj
+        l0 = tl.load(scalar_ptr)
+        h = tl.load(scalar_ptr + 1)
+        vmax = tl.load(scalar_ptr + 4)
+        ks_r = tl.load(phys_ptr + rope64 * 4, mask=rmask, other=1.0)             # per rope, [R]
+        kb_r = tl.load(phys_ptr + rope64 * 4 + 1, mask=rmask, other=0.0)
+        hm_r = h * tl.load(phys_ptr + rope64 * 4 + 2, mask=rmask, other=1.0)
+        damp_r = tl.load(phys_ptr + rope64 * 4 + 3, mask=rmask, other=1.0)
+        ks = ks_r[:, None]
+        kb = kb_r[:, None]
+        hm = hm_r[:, None]
+        damp = damp_r[:, None]
+        coef = hm * damp
+        g = tl.load(node_ptr + rope, mask=rmask, other=0).to(tl.int32)
+        ng = tl.load(ngrasp_ptr + rope, mask=rmask, other=0).to(tl.int32)
+        dx = tl.load(delta_ptr + rope64 * 2, mask=rmask, other=0.0)
+        dy = tl.load(delta_ptr + rope64 * 2 + 1, mask=rmask, other=0.0)
+        sp = tl.load(speed_ptr + rope, mask=rmask, other=1.0)
+        safe = tl.maximum(tl.sqrt(dx * dx + dy * dy), 1e-12)
+        grasped = jj == g[:, None]
+        x0 = tl.load(pos_ptr + offs, mask=nmask, other=0.0)
+        y0 = tl.load(pos_ptr + offs + 1, mask=nmask, other=0.0)
+        sx = tl.sum(tl.where(grasped, x0, 0.0), axis=1)
+        sy = tl.sum(tl.where(grasped, y0, 0.0), axis=1)
+        K = tl.load(steps_ptr + rope, mask=rmask, other=0).to(tl.int32)
+        gx = tl.load(gpos_ptr + offs, mask=nmask, other=0.0)
+        gy = tl.load(gpos_ptr + offs + 1, mask=nmask, other=0.0)
+        gvx = tl.load(gvel_ptr + offs, mask=nmask, other=0.0)
+        gvy = tl.load(gvel_ptr + offs + 1, mask=nmask, other=0.0)
+        zero = sx * 0.0
+        gdx = zero
+        gdy = zero
+        gsx = zero
+        gsy = zero
+        acc_s = zero
+        acc_b = zero
+        acc_w = zero
+        ckpt = rope64[:, None] * (slots * 4 * N) + jj
+        plane = tl.arange(0, BLOCK)[:, None] * N_PAD + jj          # this program's [R, N_PAD] tile of one plane
+        scratch = scratch_ptr + pid.to(tl.int64) * (CHUNK * NC * BLOCK * N_PAD)
+        kmax = tl.max(K, axis=0)
+        chunks = (kmax + CHUNK - 1) // CHUNK
+        for ci in range(0, chunks):
+            c = chunks - 1 - ci
+            k0 = c * CHUNK
+            length = tl.minimum(kmax - k0, CHUNK)
+            want = nmask & (K > k0)[:, None]
+            at = ckpt + c * (4 * N)
+            x = tl.where(want, tl.load(ckpt_ptr + at, mask=want, other=0.0), x0)     # ropes already done:
+            y = tl.where(want, tl.load(ckpt_ptr + at + N, mask=want, other=0.0), y0)  # any finite shape
+            vx = tl.load(ckpt_ptr + at + 2 * N, mask=want, other=0.0)
+            vy = tl.load(ckpt_ptr + at + 3 * N, mask=want, other=0.0)
+            for s in range(0, length):                             # recompute: x_{k-1} of substeps k0+1 .. k0+length
+                k = k0 + s + 1
+                base = scratch + s * (NC * BLOCK * N_PAD)
+                tl.store(base + plane, x)
+                tl.store(base + BLOCK * N_PAD + plane, y)
+                if PHYS:
+                    tl.store(base + 2 * BLOCK * N_PAD + plane, vx)
+                    tl.store(base + 3 * BLOCK * N_PAD + plane, vy)
+                live = want & (k <= K)[:, None]
+                x, y, vx, vy = _substep(x, y, vx, vy, k, live, ks, kb, hm, damp, l0, h, jj, link, inner, nxt, prv,
+                                        grasped & (k <= ng)[:, None], sx, sy, dx, dy, sp, safe)
+            tl.debug_barrier()
+            for si in range(0, length):                            # the adjoint, back through the chunk
+                s = length - 1 - si
+                k = k0 + s + 1
+                act = rmask & (k <= K)
+                drag = act & (k <= ng)
+                on = grasped & drag[:, None]
+                ax = tl.sum(tl.where(on, gx, 0.0), axis=1)
+                ay = tl.sum(tl.where(on, gy, 0.0), axis=1)
+                cx = tl.sum(tl.where(on, gvx, 0.0), axis=1)
+                cy = tl.sum(tl.where(on, gvy, 0.0), axis=1)
+                pdx, pdy = _path_adjoint(k, dx, dy, sp, safe, h, vmax, ax, ay, cx, cy)
+                gdx += tl.where(drag, pdx, 0.0)
+                gdy += tl.where(drag, pdy, 0.0)
+                gsx += ax
+                gsy += ay
+                gx = tl.where(on, 0.0, gx)
+                gy = tl.where(on, 0.0, gy)
+                gvx = tl.where(on, 0.0, gvx)
+                gvy = tl.where(on, 0.0, gvy)
+                base = scratch + s * (NC * BLOCK * N_PAD)
+                px = tl.load(base + plane)
+                py = tl.load(base + BLOCK * N_PAD + plane)
+                ux = gvx + h * gx
+                uy = gvy + h * gy
+                hux, huy, dot_s, dot_b = _hvp(px, py, ux, uy, ks, kb, l0, jj, link, inner, nxt, prv)
+                if PHYS:
+                    pvx = tl.load(base + 2 * BLOCK * N_PAD + plane)
+                    pvy = tl.load(base + 3 * BLOCK * N_PAD + plane)
+                    uv = tl.sum(tl.where(nmask, ux * pvx + uy * pvy, 0.0), axis=1)
+                    acc_s += tl.where(act, dot_s, 0.0)
+                    acc_b += tl.where(act, dot_b, 0.0)
+                    acc_w += tl.where(act, uv + hm_r * (ks_r * dot_s + kb_r * dot_b), 0.0)
+                live = act[:, None] & nmask
+                gx = tl.where(live, gx - coef * hux, gx)
+                gy = tl.where(live, gy - coef * huy, gy)
+                gvx = tl.where(live, damp * ux, gvx)
+                gvy = tl.where(live, damp * uy, gvy)
+            tl.debug_barrier()
+        start = grasped & (ng > 0)[:, None]
+        gx = tl.where(start, gx + gsx[:, None], gx)
+        gy = tl.where(start, gy + gsy[:, None], gy)
+        tl.store(out_gpos_ptr + offs, gx, mask=nmask)
+        tl.store(out_gpos_ptr + offs + 1, gy, mask=nmask)
+        tl.store(out_gvel_ptr + offs, gvx, mask=nmask)
+        tl.store(out_gvel_ptr + offs + 1, gvy, mask=nmask)
+        tl.store(out_gdelta_ptr + rope64 * 2, gdx, mask=rmask)
+        tl.store(out_gdelta_ptr + rope64 * 2 + 1, gdy, mask=rmask)
+        if PHYS:
+            coef_r = hm_r * damp_r
+            tl.store(out_gphys_ptr + rope64 * 4, coef_r * acc_s, mask=rmask)
+            tl.store(out_gphys_ptr + rope64 * 4 + 1, coef_r * acc_b, mask=rmask)
+            tl.store(out_gphys_ptr + rope64 * 4 + 2, h * damp_r * (ks_r * acc_s + kb_r * acc_b), mask=rmask)
+            tl.store(out_gphys_ptr + rope64 * 4 + 3, acc_w, mask=rmask)
 
-def default_columns(p, batch: int, device, dtype) -> torch.Tensor:
-    """(B, 4) k_s, k_b, 1 / node_mass, damping factor of the params, for every rope."""
-    row = torch.tensor([p.k_s, p.k_b, 1.0 / p.node_mass, 1.0 / (1.0 + p.dt * p.k_d / p.node_mass)],
-                       dtype=torch.float64)
-    return row.to(device=device, dtype=dtype).expand(batch, 4).contiguous()
+
+def chunk_substeps(longest: int) -> int:
+    """Substeps per recomputed chunk of the adjoint: the power of two >= sqrt(longest), at least 8, so each rope
+    keeps about 2 sqrt(K) states (checkpoints + one chunk) instead of K."""
+    root = math.isqrt(max(longest - 1, 0)) + 1                 # ceil(sqrt(longest)) for longest >= 1
+    return max(8, 1 << (root - 1).bit_length())
+
+
+def scalars(p, device, dtype, divergence_radius: float = 100.0) -> torch.Tensor:
+    """[l0, h, settle threshold, divergence radius, max_speed] in the state's dtype. The kernels read them from a
+    tensor: Triton passes Python floats as float32, which would round h and l0 of a float64 move."""
+    return torch.tensor([p.rest_length, p.dt, p.settle_threshold, divergence_radius, p.max_speed],
+                        dtype=dtype, device=device)
 
 
 def columns(p, physics, batch: int, device, dtype) -> torch.Tensor:
-    """(B, 4) columns of a Physics (or the params' numbers for None), on ``device`` in ``dtype`` (detached)."""
+    """(B, 4) k_s, k_b, 1 / node_mass, damping factor 1 / (1 + h k_d / node_mass) of a Physics, on ``device`` in
+    ``dtype`` and differentiable where its tensors are; the params' numbers for every rope when ``physics`` is
+    None."""
     if physics is None:
-        return default_columns(p, batch, device, dtype)
+        row = torch.tensor([p.k_s, p.k_b, 1.0 / p.node_mass, 1.0 / (1.0 + p.dt * p.k_d / p.node_mass)],
+                           dtype=torch.float64)
+        return row.to(device=device, dtype=dtype).expand(batch, 4).contiguous()
     from .kernel import physics_columns
-    return physics_columns(p, physics, batch).detach().to(device=device, dtype=dtype).contiguous()
+    return physics_columns(p, physics, batch, device=device, dtype=dtype)
+
+
+def _longest(p, fixed_steps: int) -> int:
+    return fixed_steps if fixed_steps >= 0 else p.max_drag_steps + p.settle_max_substeps + 1
 
 
 def forward(p, pos, vel, node, delta, speed, n_grasp, phys, fixed_steps: int = -1,
-            divergence_radius: float = 100.0):
-    """Run the kernel (no autograd): returns (pos, vel, steps int64, settled bool, diverged bool), all on pos's
-    device. ``phys``: the (B, 4) columns (``columns``); ``fixed_steps`` >= 0: free evolution for that many substeps
-    (node, delta, speed, n_grasp then unused: pass zeros)."""
+            divergence_radius: float = 100.0, save: bool = False):
+    """Run the move kernel (no autograd): returns (pos, vel, steps int64, settled bool, diverged bool, checkpoints),
+    all on pos's device. ``phys``: the (B, 4) columns (``columns``); ``fixed_steps`` >= 0: free evolution for that
+    many substeps (node, delta, speed, n_grasp then unused: pass zeros). ``save``: also keep each rope's state every
+    ``chunk_substeps`` substeps for ``backward`` (checkpoints (B, slots, 4, N); None otherwise)."""
     reason = device_reason(pos.device)
     if reason is not None:
         raise RuntimeError(f"backend 'triton' cannot run: {reason}")
@@ -242,83 +487,78 @@ def forward(p, pos, vel, node, delta, speed, n_grasp, phys, fixed_steps: int = -
     steps = torch.zeros(batch, dtype=torch.int64, device=dev)
     settled = torch.zeros(batch, dtype=torch.int8, device=dev)
     diverged = torch.zeros(batch, dtype=torch.int8, device=dev)
+    chunk = chunk_substeps(_longest(p, fixed_steps))
+    slots = _longest(p, fixed_steps) // chunk + 1
+    ckpt = pos.new_empty(batch, slots, 4, n) if save else None
     if batch > 0:
         grid = (triton.cdiv(batch, BLOCK_ROPES),)
-        _move_kernel[grid](pos, vel, node, delta, speed, n_grasp, phys, out_pos, out_vel, steps, settled, diverged,
-                           batch, float(p.rest_length), float(p.dt), float(p.settle_threshold),
-                           float(divergence_radius), int(p.settle_check_every), int(p.settle_max_substeps),
-                           int(fixed_steps), N=n, N_PAD=triton.next_power_of_2(n), BLOCK=BLOCK_ROPES,
-                           FIXED=fixed_steps >= 0, num_warps=NUM_WARPS)
-    return out_pos, out_vel, steps, settled.bool(), diverged.bool()
+        _move_kernel[grid](pos, vel, node, delta, speed, n_grasp, phys, scalars(p, dev, pos.dtype, divergence_radius),
+                           out_pos, out_vel, steps, settled, diverged, out_pos if ckpt is None else ckpt,
+                           batch, int(p.settle_check_every), int(p.settle_max_substeps), int(fixed_steps), slots,
+                           N=n, N_PAD=triton.next_power_of_2(n), BLOCK=BLOCK_ROPES, FIXED=fixed_steps >= 0,
+                           SAVE=save, CHUNK=chunk, num_warps=NUM_WARPS)
+    return out_pos, out_vel, steps, settled.bool(), diverged.bool(), ckpt
 
 
-def _physics_tensors(physics, batch: int, device, dtype):
-    """The four Physics values as (B,) tensors (keeping their graphs) and a rebuild function, for autograd."""
-    from .physics import PHYSICAL
-    values = []
-    for key in PHYSICAL:
-        v = getattr(physics, key)
-        if torch.is_tensor(v):
-            values.append(torch.broadcast_to(v, (batch,)))
-        else:
-            values.append(torch.full((batch,), float(v), device=device, dtype=dtype))
-    return values
+def backward(p, pos, node, delta, speed, n_grasp, phys, steps, ckpt, grad_pos, grad_vel, fixed_steps: int = -1,
+             want_phys: bool = False):
+    """The adjoint of ``forward`` (run with ``save``): returns (grad_pos, grad_vel, grad_delta, grad_phys) for the
+    incoming gradients of the final positions and velocities; grad_phys (B, 4) w.r.t. the columns if
+    ``want_phys``, else None. Memory: the checkpoints and one chunk of states per block of ropes."""
+    batch, n = pos.shape[0], p.n_nodes
+    dev, dtype = pos.device, pos.dtype
+    n_pad = triton.next_power_of_2(n)
+    chunk = chunk_substeps(_longest(p, fixed_steps))
+    programs = triton.cdiv(batch, BLOCK_ROPES)
+    planes = 4 if want_phys else 2
+    scratch = pos.new_empty(max(programs, 1) * chunk * planes * BLOCK_ROPES * n_pad)
+    grad_pos = torch.zeros_like(pos) if grad_pos is None else grad_pos.detach().to(dtype).contiguous()
+    grad_vel = torch.zeros_like(pos) if grad_vel is None else grad_vel.detach().to(dtype).contiguous()
+    out_gpos, out_gvel = torch.empty_like(pos), torch.empty_like(pos)
+    out_gdelta = pos.new_empty(batch, 2)
+    out_gphys = pos.new_empty(batch, 4) if want_phys else out_gdelta
+    if batch > 0:
+        _adjoint_kernel[(programs,)](
+            pos.detach().contiguous(), node.to(device=dev, dtype=torch.int64).contiguous(),
+            delta.detach().to(dtype).contiguous(), speed.detach().to(dtype).contiguous(),
+            n_grasp.to(device=dev, dtype=torch.int64).contiguous(), phys.detach().to(dtype).contiguous(),
+            scalars(p, dev, dtype), steps, ckpt, scratch, grad_pos, grad_vel, out_gpos, out_gvel, out_gdelta,
+            out_gphys, batch, ckpt.shape[1], N=n, N_PAD=n_pad, BLOCK=BLOCK_ROPES, CHUNK=chunk, PHYS=want_phys,
+            NC=planes, num_warps=NUM_WARPS)
+    return out_gpos, out_gvel, out_gdelta, out_gphys if want_phys else None
 
 
 class TritonMove(torch.autograd.Function):
-    """Differentiable Triton move / free evolution: (pos, vel, delta, k_s, k_b, k_d, mass) -> (pos, vel, steps,
-    settled, diverged). The backward recomputes the same move on the eager torch path under autograd (see the
-    module docstring). ``delta`` is the already clipped drag; ``path_steps`` its substep count; ``fixed_steps`` >=
-    0 makes it ``integrate``. k_s, ..., mass: (B,) tensors, or None for the params' numbers."""
+    """Differentiable Triton move / free evolution: (pos, vel, delta, phys) -> (pos, vel, steps, settled,
+    diverged), forward and backward each one kernel launch. ``delta`` is the already clipped drag (its reference
+    speed is differentiated inside the adjoint); ``path_steps`` its substep count; ``fixed_steps`` >= 0 makes it
+    ``integrate``. ``phys``: the (B, 4) ``columns``, whose gradient autograd carries on to k_s, k_b, k_d and mass."""
 
     @staticmethod
-    def forward(ctx, sim, pos, vel, node, delta, path_steps, fixed_steps, k_s, k_b, k_d, mass):
-        from .physics import Physics
+    def forward(ctx, sim, pos, vel, node, delta, path_steps, fixed_steps, phys):
+        from . import control
         p = sim.params
         batch = pos.shape[0]
-        physics = None if k_s is None else Physics(k_s.detach(), k_b.detach(), k_d.detach(), mass.detach())
-        phys = columns(p, physics, batch, pos.device, pos.dtype)
         if fixed_steps >= 0:
-            zeros = torch.zeros(batch, dtype=torch.int64, device=pos.device)
+            node = path_steps = torch.zeros(batch, dtype=torch.int64, device=pos.device)
+            delta = torch.zeros(batch, 2, dtype=pos.dtype, device=pos.device)
             speed = torch.full((batch,), p.max_speed, dtype=pos.dtype, device=pos.device)
-            out = forward(p, pos, vel, zeros, torch.zeros(batch, 2, dtype=pos.dtype, device=pos.device), speed,
-                          zeros, phys, fixed_steps)
         else:
-            from . import control
             speed = control.drag_speed(delta.detach().norm(dim=-1), p)
-            out = forward(p, pos, vel, node, delta, speed, path_steps, phys)
-        ctx.sim, ctx.fixed_steps = sim, fixed_steps
-        ctx.save_for_backward(pos, vel, node, delta, path_steps, k_s, k_b, k_d, mass)
-        ctx.mark_non_differentiable(*out[2:])
-        return out
+        needs = ctx.needs_input_grad
+        save = needs[1] or needs[2] or needs[4] or needs[7]
+        out_pos, out_vel, steps, settled, diverged, ckpt = forward(p, pos, vel, node, delta, speed, path_steps, phys,
+                                                                   fixed_steps, save=save)
+        ctx.params, ctx.fixed_steps = p, fixed_steps
+        ctx.save_for_backward(pos, node, delta, speed, path_steps, phys, steps, ckpt)
+        ctx.mark_non_differentiable(steps, settled, diverged)
+        return out_pos, out_vel, steps, settled, diverged
 
     @staticmethod
     def backward(ctx, grad_pos, grad_vel, _steps, _settled, _diverged):
-        from .physics import Physics
-        pos, vel, node, delta, path_steps, k_s, k_b, k_d, mass = ctx.saved_tensors
-        sim = ctx.sim
+        pos, node, delta, speed, path_steps, phys, steps, ckpt = ctx.saved_tensors
         needs = ctx.needs_input_grad
-        with torch.enable_grad():
-            leaves = [t.detach().requires_grad_(bool(w)) if t is not None else None
-                      for t, w in zip((pos, vel, delta, k_s, k_b, k_d, mass), needs[1:3] + needs[4:5] + needs[7:])]
-            x0, v0, d0, ks0, kb0, kd0, m0 = leaves
-            physics = None if ks0 is None else Physics(ks0, kb0, kd0, m0)
-            if ctx.fixed_steps >= 0:
-                out_pos, out_vel = x0, v0
-                for _ in range(ctx.fixed_steps):
-                    out_pos, out_vel = sim.substep(out_pos, out_vel, physics=physics)
-            else:
-                from . import control
-                speed = control.drag_speed(d0.norm(dim=-1), sim.params)
-                out_pos, out_vel = sim._move_eager(x0, v0, node, d0, speed, path_steps, physics)[:2]
-            outputs, grads = [], []
-            for o, go in ((out_pos, grad_pos), (out_vel, grad_vel)):
-                if go is not None:
-                    outputs.append(o)
-                    grads.append(go)
-            inputs = [t for t in leaves if t is not None and t.requires_grad]
-            got = torch.autograd.grad(outputs, inputs, grads, allow_unused=True) if outputs and inputs else []
-        it = iter(got)
-        res = [next(it) if t is not None and t.requires_grad else None for t in leaves]
-        g_pos, g_vel, g_delta, g_ks, g_kb, g_kd, g_m = res
-        return None, g_pos, g_vel, None, g_delta, None, None, g_ks, g_kb, g_kd, g_m
+        g_pos, g_vel, g_delta, g_phys = backward(ctx.params, pos, node, delta, speed, path_steps, phys, steps, ckpt,
+                                                 grad_pos, grad_vel, ctx.fixed_steps, want_phys=needs[7])
+        return (None, g_pos if needs[1] else None, g_vel if needs[2] else None, None,
+                g_delta if needs[4] and ctx.fixed_steps < 0 else None, None, None, g_phys)
