@@ -17,8 +17,9 @@ JSON line with every figure. Timings are medians of --repeats runs; the machine'
 On CUDA it compares, for each B, the fused Triton kernel (backend "triton", one launch per move), the eager torch
 path on the same GPU (up to B = --eager-max: it is slow) and the CPU C++ kernel in the same run (up to
 --cpu-max): env steps/s of one batched move, sim s/s of 1 s of free evolution, forward+backward time of one move
-(the Triton backend's backward recomputes the move on the eager path; up to B = --backward-max), and the deviation
-of the float32 Triton move from the float64 eager reference on the GPU (first 64 ropes).
+(the Triton adjoint kernel; up to B = --backward-max), the backward over the forward, the peak GPU memory of the
+forward+backward, the deviation of the float32 Triton move from the float64 eager reference on the GPU, and that of
+its gradient w.r.t. the start positions and the drag (largest error over largest entry; first 64 ropes).
 """
 from __future__ import annotations
 
@@ -59,6 +60,21 @@ def problem(sim: diffdlo.Simulator, batch: int, seed: int = 0):
     return pos, node, delta
 
 
+def fb(sim, x0, n0, d0):
+    """A function running the forward and backward of one move."""
+    def run():
+        x, d = x0.clone().requires_grad_(True), d0.clone().requires_grad_(True)
+        sim.move(x, n0, d).sum().backward()
+    return run
+
+
+def gradients(sim, x0, n0, d0):
+    """Gradients of a fixed random weighting of the moved positions w.r.t. the start positions and the drag."""
+    x, d = x0.clone().requires_grad_(True), d0.clone().requires_grad_(True)
+    w = torch.randn(x0.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64).to(x0.device, x0.dtype)
+    return torch.autograd.grad((sim.move(x, n0, d) * w).sum(), (x, d))
+
+
 def cuda_main(args) -> None:
     """--device cuda: the Triton kernel against the eager path on the GPU and the CPU C++ kernel, same inputs."""
     p = diffdlo.load_params("cable")
@@ -70,7 +86,7 @@ def cuda_main(args) -> None:
           f"{'fused C++ kernel' if cpu.uses_kernel() else 'torch'} on {torch.get_num_threads()} threads")
     header = (f"{'B':>6} {'triton st/s':>12} {'eager st/s':>11} {'cpu st/s':>10} {'x eager':>8} {'x cpu':>7} "
               f"{'tri sim s/s':>11} {'cpu sim s/s':>11} {'tri f+b s':>10} {'eag f+b s':>10} {'cpu f+b s':>10} "
-              f"{'dev mm':>9}")
+              f"{'bwd/fwd':>7} {'f+b MB':>8} {'dev mm':>9} {'grad dev':>9}")
     print(header)
     rows = []
     nan = float("nan")
@@ -78,6 +94,7 @@ def cuda_main(args) -> None:
         pos, node, delta = problem(tri, batch)
         tri.move(pos[:1], node[:1], delta[:1])          # compile (first call per dtype)
         tri.integrate(pos[:1], None, 10)
+        fb(tri, pos[:1], node[:1], delta[:1])()         # compile the adjoint
         t_move = median_time(lambda: tri.move(pos, node, delta), args.repeats)
         t_free = median_time(lambda: tri.integrate(pos, None, 1000), args.repeats)
         t_eager = median_time(lambda: eager.move(pos, node, delta), 1) if batch <= args.eager_max else nan
@@ -89,13 +106,16 @@ def cuda_main(args) -> None:
         ref_move = reference.move(pos[:k].double(), node[:k], delta[:k].double())
         dev = (tri.move(pos[:k], node[:k], delta[:k]).double() - ref_move).norm(dim=-1).max().item() * 1000
 
-        def fb(sim, x0, n0, d0):
-            def run():
-                x, d = x0.clone().requires_grad_(True), d0.clone().requires_grad_(True)
-                sim.move(x, n0, d).sum().backward()
-            return run
-
-        t_fb = median_time(fb(tri, pos, node, delta), 1) if batch <= args.backward_max else nan
+        g_ref = gradients(reference, pos[:k].double(), node[:k], delta[:k].double())
+        g_tri = gradients(tri, pos[:k], node[:k], delta[:k])
+        grad_dev = max(((a.double() - b).abs().max() / b.abs().max()).item() for a, b in zip(g_tri, g_ref))
+        peak_mb = nan
+        if batch <= args.backward_max:
+            torch.cuda.reset_peak_memory_stats(tri.device)
+            before = torch.cuda.memory_allocated(tri.device)
+            fb(tri, pos, node, delta)()
+            peak_mb = (torch.cuda.max_memory_allocated(tri.device) - before) / 2 ** 20
+        t_fb = median_time(fb(tri, pos, node, delta), args.repeats) if batch <= args.backward_max else nan
         t_fb_eager = median_time(fb(eager, pos, node, delta), 1) if batch <= min(args.eager_max, args.backward_max) \
             else nan
         t_fb_cpu = median_time(fb(cpu, pc, nc, dc), 1) if on_cpu else nan
@@ -104,12 +124,14 @@ def cuda_main(args) -> None:
                "triton_over_cpu": t_cpu / t_move, "triton_sim_s_per_s": 1.0 / t_free,
                "cpu_sim_s_per_s": 1.0 / t_cpu_free, "triton_forward_backward_s": t_fb,
                "eager_forward_backward_s": t_fb_eager, "cpu_forward_backward_s": t_fb_cpu,
-               "triton_backward_over_forward": (t_fb - t_move) / t_move, "deviation_move_mm": dev}
+               "triton_backward_over_forward": (t_fb - t_move) / t_move, "triton_forward_backward_peak_mb": peak_mb,
+               "deviation_move_mm": dev, "gradient_relative_deviation": grad_dev}
         rows.append(row)
         print(f"{batch:>6} {row['triton_env_steps_per_s']:>12.1f} {row['eager_env_steps_per_s']:>11.1f} "
               f"{row['cpu_kernel_env_steps_per_s']:>10.1f} {row['triton_over_eager']:>7.1f}x "
               f"{row['triton_over_cpu']:>6.1f}x {row['triton_sim_s_per_s']:>11.2f} {row['cpu_sim_s_per_s']:>11.2f} "
-              f"{t_fb:>10.3f} {t_fb_eager:>10.3f} {t_fb_cpu:>10.3f} {dev:>9.2e}", flush=True)
+              f"{t_fb:>10.3f} {t_fb_eager:>10.3f} {t_fb_cpu:>10.3f} {row['triton_backward_over_forward']:>7.2f} "
+              f"{peak_mb:>8.0f} {dev:>9.2e} {grad_dev:>9.1e}", flush=True)
     print(json.dumps({"device": str(tri.device), "gpu": torch.cuda.get_device_name(tri.device),
                       "threads": torch.get_num_threads(), "rows": rows}))
 
@@ -143,8 +165,8 @@ def main() -> None:
     parser.add_argument("--memory-moves", type=int, default=10)
     parser.add_argument("--eager-max", type=int, default=1024, help="cuda: largest B timed on the eager path")
     parser.add_argument("--cpu-max", type=int, default=65536, help="cuda: largest B timed on the CPU kernel")
-    parser.add_argument("--backward-max", type=int, default=4096,
-                        help="cuda: largest B whose forward+backward is timed (the backward is eager)")
+    parser.add_argument("--backward-max", type=int, default=65536,
+                        help="cuda: largest B whose forward+backward is timed")
     parser.add_argument("--_memory_probe", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.device.startswith("cuda") and not args._memory_probe:

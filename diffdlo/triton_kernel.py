@@ -50,7 +50,10 @@ except Exception as exc:                       # pragma: no cover - depends on t
                     f"'diffdlo[gpu]' (or pip install triton)"
 
 BLOCK_ROPES = 16          # ropes per program (a [16, 32] tile for 20 nodes)
-NUM_WARPS = 2
+# warps per program: the fewest with which ptxas keeps each kernel in registers on sm_90 with 20 nodes (no spills
+# but 8 bytes in the float64 adjoint with physics; `python -m benchmarks.triton_compile` prints them, no GPU needed)
+WARPS = {("move", torch.float32): 2, ("move", torch.float64): 8,
+         ("adjoint", torch.float32): 4, ("adjoint", torch.float64): 8}
 
 
 def interpreting() -> bool:
@@ -496,7 +499,7 @@ def forward(p, pos, vel, node, delta, speed, n_grasp, phys, fixed_steps: int = -
                            out_pos, out_vel, steps, settled, diverged, out_pos if ckpt is None else ckpt,
                            batch, int(p.settle_check_every), int(p.settle_max_substeps), int(fixed_steps), slots,
                            N=n, N_PAD=triton.next_power_of_2(n), BLOCK=BLOCK_ROPES, FIXED=fixed_steps >= 0,
-                           SAVE=save, CHUNK=chunk, num_warps=NUM_WARPS)
+                           SAVE=save, CHUNK=chunk, num_warps=WARPS["move", pos.dtype])
     return out_pos, out_vel, steps, settled.bool(), diverged.bool(), ckpt
 
 
@@ -524,7 +527,7 @@ def backward(p, pos, node, delta, speed, n_grasp, phys, steps, ckpt, grad_pos, g
             n_grasp.to(device=dev, dtype=torch.int64).contiguous(), phys.detach().to(dtype).contiguous(),
             scalars(p, dev, dtype), steps, ckpt, scratch, grad_pos, grad_vel, out_gpos, out_gvel, out_gdelta,
             out_gphys, batch, ckpt.shape[1], N=n, N_PAD=n_pad, BLOCK=BLOCK_ROPES, CHUNK=chunk, PHYS=want_phys,
-            NC=planes, num_warps=NUM_WARPS)
+            NC=planes, num_warps=WARPS["adjoint", dtype])
     return out_gpos, out_gvel, out_gdelta, out_gphys if want_phys else None
 
 

@@ -1,8 +1,10 @@
 """The fused Triton kernel (backend "triton", diffdlo/triton_kernel.py) against the eager torch reference path.
 
-Marked ``triton`` (kept out of the default run): ``TRITON_INTERPRET=1 python -m pytest -m triton`` runs the kernel in
-Triton's CPU interpreter; on a machine with CUDA the same tests run the compiled kernel on the GPU. The interpreter
-takes ~20-30 ms per substep, so the params are cut to ~100-substep moves.
+Marked ``triton`` (kept out of the default run; .ci/run runs them after installing the [gpu] extra):
+``TRITON_INTERPRET=1 python -m pytest -m triton`` runs the kernels (the move and its adjoint) in Triton's CPU
+interpreter; on a machine with CUDA the same tests run the compiled kernels on the GPU. The interpreter takes ~20-30
+ms per substep, so the params are cut to ~100-substep moves. The gradient problem is benchmarks/triton_gradients.py's,
+which prints the errors the test bounds.
 """
 import dataclasses
 import os
@@ -16,6 +18,7 @@ import diffdlo
 from conftest import crumpled
 
 triton = pytest.importorskip("triton")
+from benchmarks import triton_gradients  # noqa: E402
 from diffdlo import triton_kernel  # noqa: E402
 
 pytestmark = pytest.mark.triton
@@ -26,12 +29,7 @@ if DEVICE == "cpu" and not triton_kernel.interpreting():
                   pytest.mark.skip(reason="no CUDA device: run with TRITON_INTERPRET=1 to test in the interpreter")]
 
 
-def short(params, **changes):
-    """A drag of at most 40 substeps, settle checked every 20 substeps up to 60: a straight rope at rest settles at
-    the first check, a crumpled one runs to the cap."""
-    changes = {"max_speed": 2.5, "max_drag_steps": 40, "settle_threshold": 2e-3, "settle_check_every": 20,
-               "settle_max_substeps": 60, **changes}
-    return dataclasses.replace(params, **changes)
+short = triton_gradients.short_params
 
 
 def sims(p, dtype):
@@ -91,51 +89,21 @@ def test_integrate_matches_eager_with_physics(params):
             assert (u - v).abs().max().item() < 1e-12
 
 
-def gradient_problem(p, dtype):
-    """Seven ropes, each with its own stop: slow drags, a fast one (speed above max_speed), a clipped one, a zero drag
-    (capped at settle_max_substeps), an end node, and a straight rope at rest that settles at the first check."""
-    pos = crumpled(7, p, sigma=0.8, seed=3)
-    pos[6] = torch.stack([torch.linspace(-0.25, 0.25, p.n_nodes, dtype=torch.float64),
-                          torch.zeros(p.n_nodes, dtype=torch.float64)], -1)
-    node = torch.tensor([0, 5, 19, 7, 12, 3, 2])
-    # |delta| a whole number of substeps at max_speed is a kink (the path ends exactly on a substep), where float32
-    # and float64 may take different one-sided derivatives: the drags here are away from it
-    delta = torch.tensor([[0.0314, 0.0021], [0.0, -0.08], [0.3, 0.2], [0.0, 0.0], [0.004, 0.01], [0.02, 0.03],
-                          [0.0, 0.0]], dtype=torch.float64)
-    weights = torch.randn(2, 7, p.n_nodes, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    return [t.to(DEVICE, dtype) if t.is_floating_point() else t.to(DEVICE) for t in (pos, node, delta, weights)]
-
-
-def chained_gradients(sim, pos, node, delta, weights):
-    """Gradients of a loss on the final positions and velocities after two chained moves and a free evolution,
-    w.r.t. the start positions and velocities, the drag and all four physical parameters."""
-    p, batch = sim.params, pos.shape[0]
-    x = pos.clone().requires_grad_(True)
-    v = torch.zeros_like(pos).requires_grad_(True)
-    d = delta.clone().requires_grad_(True)
-    phys = diffdlo.Physics.of(p, batch, device=DEVICE, dtype=pos.dtype, requires_grad=True)
-    out, info = sim.move(x, node, d, vel=v, physics=phys, return_info=True)
-    out = sim.move(out, (node + 1) % p.n_nodes, 0.6 * d, physics=phys)
-    out, vel = sim.integrate(out, None, 25, physics=phys)
-    loss = (out * weights[0]).sum() + (vel * weights[1]).sum()
-    return info, torch.autograd.grad(loss, (x, v, d, phys.k_s, phys.k_b, phys.k_d, phys.mass))
-
-
 @pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-6), (torch.float32, 1e-4)])
 def test_gradients_match_eager(params, dtype, rtol):
     """The Triton adjoint against autograd through the eager loop, in the same dtype: every input, whole and chained
     moves, per-rope stops; relative to each gradient's largest entry."""
     p = short(params, max_speed=1.0)                  # drags longer than 4 cm run faster than max_speed
     ref, tri = sims(p, dtype)
-    problem_ = gradient_problem(p, dtype)
-    info_ref, g_ref = chained_gradients(ref, *problem_)
-    info_tri, g_tri = chained_gradients(tri, *problem_)
+    problem_ = triton_gradients.gradient_problem(p, dtype, DEVICE)
+    info_ref, g_ref = triton_gradients.chained_gradients(ref, *problem_)
+    info_tri, g_tri = triton_gradients.chained_gradients(tri, *problem_)
     assert torch.equal(info_ref.substeps, info_tri.substeps.to(info_ref.substeps.device))
     steps = info_tri.substeps.tolist()
     assert steps[6] == p.settle_check_every and steps[3] == p.settle_max_substeps and steps[0] > steps[3], steps
-    for name, a, b in zip(("pos", "vel", "delta", "k_s", "k_b", "k_d", "mass"), g_ref, g_tri):
+    for name, a, b in zip(triton_gradients.INPUTS, g_ref, g_tri):
         assert torch.isfinite(b).all() and b.abs().max() > 0, name
-        error = ((a - b).abs().max() / a.abs().max()).item()
+        error = triton_gradients.relative_error(b, a)
         assert error < rtol, (name, error)
 
 
@@ -215,3 +183,17 @@ def test_auto_picks_triton_on_cuda_only(params):
         assert sim.uses_triton() and not sim.uses_kernel()
     else:
         assert not sim.uses_triton() and "CUDA" in sim.triton_unsupported()
+
+
+def test_every_kernel_compiles_for_a_gpu_without_one():
+    """The compiled path, not the interpreter: each kernel variant, float32 and float64, compiled for sm_90 by Triton's
+    own ptxas (no GPU needed) at the warps of WARPS, in a fresh process (the interpreter replaces the kernels)."""
+    env = {**os.environ, "TRITON_INTERPRET": "0"}
+    out = subprocess.run([sys.executable, "-m", "benchmarks.triton_compile", "--arch", "90"], capture_output=True,
+                         text=True, env=env, timeout=600, cwd=os.path.dirname(os.path.dirname(__file__)))
+    assert out.returncode == 0, out.stderr[-3000:]
+    rows = [line.split() for line in out.stdout.splitlines() if line.startswith(("move", "adjoint"))]
+    assert len(rows) == 12, out.stdout
+    for row in rows:
+        registers = row[-2]
+        assert registers.isdigit() and 0 < int(registers) <= 255, row
