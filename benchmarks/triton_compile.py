@@ -3,8 +3,8 @@
     python -m benchmarks.triton_compile [--arch 90] [--nodes 20]
 
 Triton's wheel carries its own ptxas, so the compiled path (not the interpreter the tests run on the CPU) is checked
-on any machine: that every variant of the move kernel (drag or free evolution, with or without checkpoints) and of
-the adjoint (with or without the physics gradients) compiles, in float32 and float64, and how many registers and
+on any machine: that every variant of the move kernel (drag or free evolution, with or without checkpoints, with
+frames) and of the adjoint (with or without the physics gradients, with frames) compiles, in float32 and float64, and how many registers and
 spilled bytes each takes at the warps per program of ``diffdlo.triton_kernel.WARPS`` (the table is chosen so that
 none spills on sm_90 with 20 nodes). ``--warps`` overrides them, to compare.
 """
@@ -47,10 +47,14 @@ def variants(n_nodes: int, chunk: int):
     for fixed in (False, True):
         for save in (False, True):
             name = f"move {'free' if fixed else 'drag'}{' +checkpoints' if save else ''}"
-            yield name, "move", triton_kernel._move_kernel, {**shape, "FIXED": fixed, "SAVE": save, "CHUNK": chunk}
-    for phys in (False, True):
-        yield (f"adjoint{' +physics' if phys else ''}", "adjoint", triton_kernel._adjoint_kernel,
-               {**shape, "CHUNK": chunk, "PHYS": phys, "NC": 4 if phys else 2})
+            yield name, "move", triton_kernel._move_kernel, {**shape, "FIXED": fixed, "SAVE": save, "CHUNK": chunk,
+                                                             "RECORD": False}
+    yield ("move drag +checkpoints +frames", "move", triton_kernel._move_kernel,
+           {**shape, "FIXED": False, "SAVE": True, "CHUNK": chunk, "RECORD": True})
+    for phys, frames in ((False, False), (True, False), (True, True)):
+        name = f"adjoint{' +physics' if phys else ''}{' +frames' if frames else ''}"
+        yield name, "adjoint", triton_kernel._adjoint_kernel, {**shape, "CHUNK": chunk, "PHYS": phys,
+                                                               "NC": 4 if phys else 2, "FRAMES": frames}
 
 
 def compile_kernel(kernel, dtype: torch.dtype, constexprs: dict, arch: int, warps: int) -> dict:
@@ -91,12 +95,12 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(triton_kernel.unavailable_reason())
     chunk = triton_kernel.chunk_substeps(2001)
     print(f"sm_{args.arch}, {args.nodes} nodes, {triton_kernel.BLOCK_ROPES} ropes per program, chunk {chunk}")
-    print(f"{'kernel':<28} {'dtype':<8} {'warps':>5} {'registers':>9} {'spill st/ld [B]':>16}")
+    print(f"{'kernel':<32} {'dtype':<8} {'warps':>5} {'registers':>9} {'spill st/ld [B]':>16}")
     for dtype in (torch.float32, torch.float64):
         for name, kind, kernel, constexprs in variants(args.nodes, chunk):
             warps = args.warps or triton_kernel.WARPS[kind, dtype]
             r = compile_kernel(kernel, dtype, constexprs, args.arch, warps)
-            print(f"{name:<28} {str(dtype).removeprefix('torch.'):<8} {warps:>5} {r['registers']!s:>9} "
+            print(f"{name:<32} {str(dtype).removeprefix('torch.'):<8} {warps:>5} {r['registers']!s:>9} "
                   f"{r['spill_stores']!s:>8}/{r['spill_loads']!s:<7}", flush=True)
 
 

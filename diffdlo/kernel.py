@@ -261,19 +261,18 @@ class KernelRun(torch.autograd.Function):
         return None, g_pos, g_vel, None, g_delta, None, None, g_phys
 
 
-def assemble_frames(setup: Setup, buffer: torch.Tensor, pos: torch.Tensor, steps: torch.Tensor,
+def assemble_frames(every: int, buffer: torch.Tensor, pos: torch.Tensor, steps: torch.Tensor,
                     differentiable: bool) -> torch.Tensor:
     """(F, B, N, 2) frames as ``Simulator.move``'s eager loop records them, from the kernel's per-rope ``buffer``
     (B, frame_cap, N, 2) and final ``pos``: a frame at every k = 0, E, 2E, ... up to the longest rope's last
     substep (a rope that stopped earlier stays frozen at its final pos), then the final pos appended unless the
     last frame already is it (with detached frames the eager loop always appends it)."""
-    every = setup.record_every
     if not differentiable:
         buffer, pos = buffer.detach(), pos.detach()
     last = int(steps.max())
     count = last // every + 1
     grid = buffer[:, :count]
-    frozen = torch.arange(count)[None, :] > (steps // every)[:, None]              # (B, F): past the rope's stop
+    frozen = torch.arange(count, device=steps.device)[None, :] > (steps // every)[:, None]   # (B, F): past its stop
     frames = torch.where(frozen[..., None, None], pos[:, None], grid).transpose(0, 1)
     if not differentiable or last % every != 0:
         frames = torch.cat([frames, pos[None]])

@@ -52,10 +52,10 @@ class Simulator:
     ``backend``: "torch" is the eager reference path (every controller, any device); "kernel" is the fused C++
     CPU kernel (kinematic controller; diffdlo/csrc/cable.cpp) with a hand-written adjoint, per-rope physics and
     frame recording included; "auto" (default) uses the kernel where it applies (CPU tensors, kinematic drag) and
-    the torch path elsewhere. "triton" is the fused Triton kernel (diffdlo/triton_kernel.py: one launch per move,
-    kinematic controller, per-rope physics; its backward recomputes the move on the eager path under autograd) on
-    CUDA tensors, or on CPU tensors in Triton's interpreter (TRITON_INTERPRET=1); "auto" picks it on CUDA where
-    triton imports and the controller is kinematic. Moves that record frames run on the eager path with it.
+    the torch path elsewhere. "triton" is the fused Triton kernel (diffdlo/triton_kernel.py: one launch per move and
+    one for its adjoint, kinematic controller, per-rope physics and frame recording included) on CUDA tensors, or
+    on CPU tensors in Triton's interpreter (TRITON_INTERPRET=1); "auto" picks it on CUDA where triton imports and
+    the controller is kinematic.
     All run the same scheme and agree to rounding.
     """
 
@@ -105,7 +105,8 @@ class Simulator:
         return self.params.controller == "kinematic" and (self.backend == "kernel" or kernel.available())
 
     def triton_unsupported(self, record_every: int = 0) -> str | None:
-        """Why moves (``record_every`` > 0: with frames) do not run in the Triton kernel (None: they do)."""
+        """Why moves and free evolution do not run in the Triton kernel (None: they do; it records frames too, so
+        ``record_every`` no longer matters and is kept for callers that pass it)."""
         if self.backend not in ("triton", "auto"):
             return f"backend is {self.backend!r}"
         if self.backend == "auto" and self.device.type != "cuda":
@@ -115,8 +116,6 @@ class Simulator:
         reason = triton_kernel.device_reason(self.device)
         if reason is not None:
             return reason
-        if record_every > 0:
-            return "the Triton kernel does not record frames (record_every > 0): that move runs on the eager path"
         return None
 
     def uses_triton(self, record_every: int = 0) -> bool:
@@ -218,7 +217,7 @@ class Simulator:
                 self._check_finite(pos, f"after {n_substeps} free substeps")
             return pos, vel
         if n_substeps > 0 and self.uses_triton():
-            pos, vel, _, _, diverged = self._triton_apply(pos, vel, None, None, None, n_substeps, physics)
+            pos, vel, _, _, diverged, _ = self._triton_apply(pos, vel, None, None, None, n_substeps, physics)
             if bool(diverged.any()):
                 self._check_finite(pos, f"after {n_substeps} free substeps")
             return pos, vel
@@ -266,7 +265,8 @@ class Simulator:
             return self._move_kernel(pos, vel, node, delta, speed, path_steps, return_info,
                                      record_every if return_info else 0, physics, differentiable_frames)
         if self.uses_triton(record_every if return_info else 0):
-            return self._move_triton(pos, vel, node, delta, path_steps, return_info, physics)
+            return self._move_triton(pos, vel, node, delta, path_steps, return_info, physics,
+                                     record_every if return_info else 0, differentiable_frames)
         pos, _, grasp_steps_cpu, finished_at, settled, frames = self._move_eager(
             pos, vel, node, delta, speed, path_steps, physics, record_every, differentiable_frames)
         if not return_info:
@@ -335,20 +335,26 @@ class Simulator:
         self._check_finite(pos, f"after a move (node={node.tolist()}, delta={delta.tolist()})")
         return pos, vel, grasp_steps_cpu, finished_at, settled, frames
 
-    def _triton_apply(self, pos, vel, node, delta, path_steps, fixed_steps, physics):
+    def _triton_apply(self, pos, vel, node, delta, path_steps, fixed_steps, physics, record_every=0):
         phys = triton_kernel.columns(self.params, physics, pos.shape[0], pos.device, pos.dtype)
-        return triton_kernel.TritonMove.apply(self, pos, vel, node, delta, path_steps, fixed_steps, phys)
+        return triton_kernel.TritonMove.apply(self, pos, vel, node, delta, path_steps, fixed_steps, phys,
+                                              record_every)
 
-    def _move_triton(self, pos, vel, node, delta, path_steps, return_info, physics=None):
-        pos, _, steps, settled, diverged = self._triton_apply(pos, vel, node, delta, path_steps, -1, physics)
+    def _move_triton(self, pos, vel, node, delta, path_steps, return_info, physics=None, record_every=0,
+                     differentiable_frames=False):
+        pos, _, steps, settled, diverged, buffer = self._triton_apply(pos, vel, node, delta, path_steps, -1, physics,
+                                                                      record_every)
         if bool(diverged.any()):
             ids = diverged.nonzero().flatten().tolist()
             raise SimulationError(f"simulation diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for batch "
                                   f"members {ids} during a move (node={node.tolist()}, delta={delta.tolist()})")
         if not return_info:
             return pos
+        frames = (kernel.assemble_frames(record_every, buffer, pos, steps, differentiable_frames) if record_every > 0
+                  else None)
         path_cpu, steps = path_steps.cpu(), steps.cpu()
-        return pos, MoveInfo(drag_substeps=path_cpu, settle_substeps=steps - path_cpu, settled=settled.cpu())
+        return pos, MoveInfo(drag_substeps=path_cpu, settle_substeps=steps - path_cpu, settled=settled.cpu(),
+                             frames=frames)
 
     def _move_kernel(self, pos, vel, node, delta, speed, path_steps, return_info, record_every=0, physics=None,
                      differentiable_frames=False):
@@ -364,7 +370,7 @@ class Simulator:
                                   f"members {ids} during a move (node={node.tolist()}, delta={delta.tolist()})")
         if not return_info:
             return pos
-        frames = (kernel.assemble_frames(setup, buffer, pos, steps, differentiable_frames) if record_every > 0
+        frames = (kernel.assemble_frames(record_every, buffer, pos, steps, differentiable_frames) if record_every > 0
                   else None)
         return pos, MoveInfo(drag_substeps=path_steps, settle_substeps=steps - path_steps, settled=settled,
                              frames=frames)

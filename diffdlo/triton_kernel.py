@@ -26,8 +26,9 @@ The kernels read l0, h and the thresholds from a tensor in the state's dtype: Tr
 float32, and ``tl.where`` of two float literals is float32 too, which would round a float64 move (the forward then
 matched the eager path to 2e-11 m; now to rounding, 1e-17).
 
-Not supported here (the simulator then uses the eager torch path, ``Simulator.triton_unsupported`` says why):
-frame recording (``record_every`` > 0 with ``return_info``), the PID controller.
+Frames (``record_every`` > 0) are recorded per rope up to its own stop, as the C++ kernel's, and their gradients go
+in at their substeps in the adjoint. Not supported here (the simulator then uses the eager torch path,
+``Simulator.triton_unsupported`` says why): the PID controller.
 
 Triton's interpreter (``TRITON_INTERPRET=1``) runs the kernel on CPU tensors; that is how the tests check it
 against the eager path on a machine without a GPU.
@@ -50,8 +51,8 @@ except Exception as exc:                       # pragma: no cover - depends on t
                     f"'diffdlo[gpu]' (or pip install triton)"
 
 BLOCK_ROPES = 16          # ropes per program (a [16, 32] tile for 20 nodes)
-# warps per program: the fewest with which ptxas keeps each kernel in registers on sm_90 with 20 nodes (no spills
-# but 8 bytes in the float64 adjoint with physics; `python -m benchmarks.triton_compile` prints them, no GPU needed)
+# warps per program: the fewest with which ptxas keeps each kernel in registers on sm_90 with 20 nodes (the variants
+# with frames spill 20-60 bytes; `python -m benchmarks.triton_compile` prints them all, no GPU needed)
 WARPS = {("move", torch.float32): 2, ("move", torch.float64): 8,
          ("adjoint", torch.float32): 4, ("adjoint", torch.float64): 8}
 
@@ -204,10 +205,10 @@ if triton is not None:
 
     @triton.jit
     def _move_kernel(pos_ptr, vel_ptr, node_ptr, delta_ptr, speed_ptr, ngrasp_ptr, phys_ptr, scalar_ptr,
-                     out_pos_ptr, out_vel_ptr, steps_ptr, settled_ptr, diverged_ptr, ckpt_ptr,
-                     B, check_every, max_settle, fixed_steps, slots,
+                     out_pos_ptr, out_vel_ptr, steps_ptr, settled_ptr, diverged_ptr, ckpt_ptr, frames_ptr,
+                     B, check_every, max_settle, fixed_steps, slots, every, frame_cap,
                      N: tl.constexpr, N_PAD: tl.constexpr, BLOCK: tl.constexpr, FIXED: tl.constexpr,
-                     SAVE: tl.constexpr, CHUNK: tl.constexpr):
+                     SAVE: tl.constexpr, CHUNK: tl.constexpr, RECORD: tl.constexpr):
         pid = tl.program_id(0)
         rope = pid * BLOCK + tl.arange(0, BLOCK)                   # [R]
         rmask = rope < B
@@ -247,6 +248,10 @@ if triton is not None:
             tl.store(ckpt_ptr + ckpt + N, y, mask=nmask)
             tl.store(ckpt_ptr + ckpt + 2 * N, vx, mask=nmask)
             tl.store(ckpt_ptr + ckpt + 3 * N, vy, mask=nmask)
+        frame = rope64[:, None] * (frame_cap * 2 * N) + 2 * jj     # frame 0 of rope r, x of node j; y at +1
+        if RECORD:
+            tl.store(frames_ptr + frame, x, mask=nmask)
+            tl.store(frames_ptr + frame + 1, y, mask=nmask)
 
         active = rmask
         steps = tl.zeros([BLOCK], tl.int32)
@@ -266,6 +271,11 @@ if triton is not None:
                     tl.store(ckpt_ptr + at + N, y, mask=live)
                     tl.store(ckpt_ptr + at + 2 * N, vx, mask=live)
                     tl.store(ckpt_ptr + at + 3 * N, vy, mask=live)
+            if RECORD:
+                if k % every == 0:                                 # frames up to each rope's own stop
+                    at = frame + (k // every) * (2 * N)
+                    tl.store(frames_ptr + at, x, mask=live)
+                    tl.store(frames_ptr + at + 1, y, mask=live)
             # ---- stop rules
             far = (~(tl.abs(x) <= radius)) | (~(tl.abs(y) <= radius))
             bad = tl.max(tl.where(nmask & far, 1, 0), axis=1) > 0
@@ -297,17 +307,18 @@ if triton is not None:
 
     @triton.jit
     def _adjoint_kernel(pos_ptr, node_ptr, delta_ptr, speed_ptr, ngrasp_ptr, phys_ptr, scalar_ptr, steps_ptr,
-                        ckpt_ptr, scratch_ptr, gpos_ptr, gvel_ptr, out_gpos_ptr, out_gvel_ptr, out_gdelta_ptr,
-                        out_gphys_ptr, B, slots,
+                        ckpt_ptr, scratch_ptr, gpos_ptr, gvel_ptr, gframes_ptr, out_gpos_ptr, out_gvel_ptr,
+                        out_gdelta_ptr, out_gphys_ptr, B, slots, every, frame_cap,
                         N: tl.constexpr, N_PAD: tl.constexpr, BLOCK: tl.constexpr, CHUNK: tl.constexpr,
-                        PHYS: tl.constexpr, NC: tl.constexpr):
+                        PHYS: tl.constexpr, NC: tl.constexpr, FRAMES: tl.constexpr):
         """The move's vector-Jacobian product, backwards over each rope's own substeps. The trajectory comes back
         chunk by chunk, last chunk first: the forward's checkpoint at the chunk's start, CHUNK substeps recomputed
         into this program's scratch, then the adjoint swept back through them. Per substep (x_k = x_{k-1} + h v_k,
         v_k = damp (v_{k-1} + h/m F(x_{k-1})), F = -grad E): u = g_v + h g_x, g_x -= (h damp / m) H(x_{k-1}) u,
         g_v = damp u; while the node is on its path, the adjoints of its overwritten position and velocity go to the
         drag and the grasp start instead. With PHYS, also the gradients w.r.t. k_s, k_b, 1/m and damp. NC: scratch
-        planes per substep (x, y; and vx, vy with PHYS)."""
+        planes per substep (x, y; and vx, vy with PHYS). FRAMES: the incoming gradients of the frames recorded every
+        ``every`` substeps are added to g_x at their substeps."""
         pid = tl.program_id(0)
         rope = pid * BLOCK + tl.arange(0, BLOCK)
         rmask = rope < B
@@ -359,6 +370,7 @@ if triton is not None:
         ckpt = rope64[:, None] * (slots * 4 * N) + jj
         plane = tl.arange(0, BLOCK)[:, None] * N_PAD + jj          # this program's [R, N_PAD] tile of one plane
         scratch = scratch_ptr + pid.to(tl.int64) * (CHUNK * NC * BLOCK * N_PAD)
+        frame = rope64[:, None] * (frame_cap * 2 * N) + 2 * jj
         kmax = tl.max(K, axis=0)
         chunks = (kmax + CHUNK - 1) // CHUNK
         for ci in range(0, chunks):
@@ -387,6 +399,12 @@ if triton is not None:
                 s = length - 1 - si
                 k = k0 + s + 1
                 act = rmask & (k <= K)
+                if FRAMES:
+                    if k % every == 0:
+                        at = frame + (k // every) * (2 * N)
+                        seen = act[:, None] & nmask
+                        gx += tl.load(gframes_ptr + at, mask=seen, other=0.0)
+                        gy += tl.load(gframes_ptr + at + 1, mask=seen, other=0.0)
                 drag = act & (k <= ng)
                 on = grasped & drag[:, None]
                 ax = tl.sum(tl.where(on, gx, 0.0), axis=1)
@@ -421,6 +439,9 @@ if triton is not None:
                 gvx = tl.where(live, damp * ux, gvx)
                 gvy = tl.where(live, damp * uy, gvy)
             tl.debug_barrier()
+        if FRAMES:                                                 # frame 0, the start positions
+            gx += tl.load(gframes_ptr + frame, mask=nmask, other=0.0)
+            gy += tl.load(gframes_ptr + frame + 1, mask=nmask, other=0.0)
         start = grasped & (ng > 0)[:, None]
         gx = tl.where(start, gx + gsx[:, None], gx)
         gy = tl.where(start, gy + gsy[:, None], gy)
@@ -468,12 +489,19 @@ def _longest(p, fixed_steps: int) -> int:
     return fixed_steps if fixed_steps >= 0 else p.max_drag_steps + p.settle_max_substeps + 1
 
 
+def frame_slots(p, fixed_steps: int, record_every: int) -> int:
+    """Frames per rope of a move recording every ``record_every`` substeps: enough for the longest possible move."""
+    return _longest(p, fixed_steps) // record_every + 1
+
+
 def forward(p, pos, vel, node, delta, speed, n_grasp, phys, fixed_steps: int = -1,
-            divergence_radius: float = 100.0, save: bool = False):
-    """Run the move kernel (no autograd): returns (pos, vel, steps int64, settled bool, diverged bool, checkpoints),
-    all on pos's device. ``phys``: the (B, 4) columns (``columns``); ``fixed_steps`` >= 0: free evolution for that
-    many substeps (node, delta, speed, n_grasp then unused: pass zeros). ``save``: also keep each rope's state every
-    ``chunk_substeps`` substeps for ``backward`` (checkpoints (B, slots, 4, N); None otherwise)."""
+            divergence_radius: float = 100.0, save: bool = False, record_every: int = 0):
+    """Run the move kernel (no autograd): returns (pos, vel, steps int64, settled bool, diverged bool, checkpoints,
+    frames), all on pos's device. ``phys``: the (B, 4) columns (``columns``); ``fixed_steps`` >= 0: free evolution
+    for that many substeps (node, delta, speed, n_grasp then unused: pass zeros). ``save``: also keep each rope's
+    state every ``chunk_substeps`` substeps for ``backward`` (checkpoints (B, slots, 4, N); None otherwise).
+    ``record_every`` > 0: frames (B, frame_slots, N, 2), the positions at substeps 0, E, 2E, ... of each rope up to
+    its own stop (rope b's frame j valid for j <= steps[b] // E, as the C++ kernel's; None otherwise)."""
     reason = device_reason(pos.device)
     if reason is not None:
         raise RuntimeError(f"backend 'triton' cannot run: {reason}")
@@ -493,20 +521,25 @@ def forward(p, pos, vel, node, delta, speed, n_grasp, phys, fixed_steps: int = -
     chunk = chunk_substeps(_longest(p, fixed_steps))
     slots = _longest(p, fixed_steps) // chunk + 1
     ckpt = pos.new_empty(batch, slots, 4, n) if save else None
+    cap = frame_slots(p, fixed_steps, record_every) if record_every > 0 else 0
+    frames = pos.new_empty(batch, cap, n, 2) if record_every > 0 else None
     if batch > 0:
         grid = (triton.cdiv(batch, BLOCK_ROPES),)
         _move_kernel[grid](pos, vel, node, delta, speed, n_grasp, phys, scalars(p, dev, pos.dtype, divergence_radius),
                            out_pos, out_vel, steps, settled, diverged, out_pos if ckpt is None else ckpt,
+                           out_pos if frames is None else frames,
                            batch, int(p.settle_check_every), int(p.settle_max_substeps), int(fixed_steps), slots,
+                           max(int(record_every), 1), cap,
                            N=n, N_PAD=triton.next_power_of_2(n), BLOCK=BLOCK_ROPES, FIXED=fixed_steps >= 0,
-                           SAVE=save, CHUNK=chunk, num_warps=WARPS["move", pos.dtype])
-    return out_pos, out_vel, steps, settled.bool(), diverged.bool(), ckpt
+                           SAVE=save, CHUNK=chunk, RECORD=record_every > 0, num_warps=WARPS["move", pos.dtype])
+    return out_pos, out_vel, steps, settled.bool(), diverged.bool(), ckpt, frames
 
 
 def backward(p, pos, node, delta, speed, n_grasp, phys, steps, ckpt, grad_pos, grad_vel, fixed_steps: int = -1,
-             want_phys: bool = False):
+             want_phys: bool = False, grad_frames=None, record_every: int = 0):
     """The adjoint of ``forward`` (run with ``save``): returns (grad_pos, grad_vel, grad_delta, grad_phys) for the
-    incoming gradients of the final positions and velocities; grad_phys (B, 4) w.r.t. the columns if
+    incoming gradients of the final positions and velocities (and of the frames, ``grad_frames`` (B, frame_slots,
+    N, 2) of a move recorded every ``record_every`` substeps); grad_phys (B, 4) w.r.t. the columns if
     ``want_phys``, else None. Memory: the checkpoints and one chunk of states per block of ropes."""
     batch, n = pos.shape[0], p.n_nodes
     dev, dtype = pos.device, pos.dtype
@@ -517,6 +550,10 @@ def backward(p, pos, node, delta, speed, n_grasp, phys, steps, ckpt, grad_pos, g
     scratch = pos.new_empty(max(programs, 1) * chunk * planes * BLOCK_ROPES * n_pad)
     grad_pos = torch.zeros_like(pos) if grad_pos is None else grad_pos.detach().to(dtype).contiguous()
     grad_vel = torch.zeros_like(pos) if grad_vel is None else grad_vel.detach().to(dtype).contiguous()
+    if grad_frames is not None:
+        if record_every <= 0:
+            raise ValueError("frame gradients need the record_every of the forward that recorded them")
+        grad_frames = grad_frames.detach().to(dtype).contiguous()
     out_gpos, out_gvel = torch.empty_like(pos), torch.empty_like(pos)
     out_gdelta = pos.new_empty(batch, 2)
     out_gphys = pos.new_empty(batch, 4) if want_phys else out_gdelta
@@ -525,20 +562,23 @@ def backward(p, pos, node, delta, speed, n_grasp, phys, steps, ckpt, grad_pos, g
             pos.detach().contiguous(), node.to(device=dev, dtype=torch.int64).contiguous(),
             delta.detach().to(dtype).contiguous(), speed.detach().to(dtype).contiguous(),
             n_grasp.to(device=dev, dtype=torch.int64).contiguous(), phys.detach().to(dtype).contiguous(),
-            scalars(p, dev, dtype), steps, ckpt, scratch, grad_pos, grad_vel, out_gpos, out_gvel, out_gdelta,
-            out_gphys, batch, ckpt.shape[1], N=n, N_PAD=n_pad, BLOCK=BLOCK_ROPES, CHUNK=chunk, PHYS=want_phys,
-            NC=planes, num_warps=WARPS["adjoint", dtype])
+            scalars(p, dev, dtype), steps, ckpt, scratch, grad_pos, grad_vel,
+            grad_pos if grad_frames is None else grad_frames, out_gpos, out_gvel, out_gdelta, out_gphys, batch,
+            ckpt.shape[1], max(int(record_every), 1), 0 if grad_frames is None else grad_frames.shape[1],
+            N=n, N_PAD=n_pad, BLOCK=BLOCK_ROPES, CHUNK=chunk, PHYS=want_phys, NC=planes,
+            FRAMES=grad_frames is not None, num_warps=WARPS["adjoint", dtype])
     return out_gpos, out_gvel, out_gdelta, out_gphys if want_phys else None
 
 
 class TritonMove(torch.autograd.Function):
     """Differentiable Triton move / free evolution: (pos, vel, delta, phys) -> (pos, vel, steps, settled,
-    diverged), forward and backward each one kernel launch. ``delta`` is the already clipped drag (its reference
-    speed is differentiated inside the adjoint); ``path_steps`` its substep count; ``fixed_steps`` >= 0 makes it
-    ``integrate``. ``phys``: the (B, 4) ``columns``, whose gradient autograd carries on to k_s, k_b, k_d and mass."""
+    diverged, frames), forward and backward each one kernel launch. ``delta`` is the already clipped drag (its
+    reference speed is differentiated inside the adjoint); ``path_steps`` its substep count; ``fixed_steps`` >= 0
+    makes it ``integrate``. ``phys``: the (B, 4) ``columns``, whose gradient autograd carries on to k_s, k_b, k_d
+    and mass. ``record_every`` > 0: frames as ``forward`` returns them (differentiable), else an empty tensor."""
 
     @staticmethod
-    def forward(ctx, sim, pos, vel, node, delta, path_steps, fixed_steps, phys):
+    def forward(ctx, sim, pos, vel, node, delta, path_steps, fixed_steps, phys, record_every=0):
         from . import control
         p = sim.params
         batch = pos.shape[0]
@@ -550,18 +590,27 @@ class TritonMove(torch.autograd.Function):
             speed = control.drag_speed(delta.detach().norm(dim=-1), p)
         needs = ctx.needs_input_grad
         save = needs[1] or needs[2] or needs[4] or needs[7]
-        out_pos, out_vel, steps, settled, diverged, ckpt = forward(p, pos, vel, node, delta, speed, path_steps, phys,
-                                                                   fixed_steps, save=save)
-        ctx.params, ctx.fixed_steps = p, fixed_steps
+        out_pos, out_vel, steps, settled, diverged, ckpt, frames = forward(
+            p, pos, vel, node, delta, speed, path_steps, phys, fixed_steps, save=save, record_every=record_every)
+        ctx.params, ctx.fixed_steps, ctx.record_every = p, fixed_steps, record_every
+        ctx.set_materialize_grads(False)        # unused outputs (vel, frames) send None, not buffers of zeros
         ctx.save_for_backward(pos, node, delta, speed, path_steps, phys, steps, ckpt)
         ctx.mark_non_differentiable(steps, settled, diverged)
-        return out_pos, out_vel, steps, settled, diverged
+        if frames is None:
+            frames = pos.new_empty(0)
+            ctx.mark_non_differentiable(frames)
+        return out_pos, out_vel, steps, settled, diverged, frames
 
     @staticmethod
-    def backward(ctx, grad_pos, grad_vel, _steps, _settled, _diverged):
+    def backward(ctx, grad_pos, grad_vel, _steps, _settled, _diverged, grad_frames):
         pos, node, delta, speed, path_steps, phys, steps, ckpt = ctx.saved_tensors
         needs = ctx.needs_input_grad
+        if grad_frames is not None and grad_frames.numel() == 0:
+            grad_frames = None
+        if grad_pos is None and grad_vel is None and grad_frames is None:
+            return (None,) * 9
         g_pos, g_vel, g_delta, g_phys = backward(ctx.params, pos, node, delta, speed, path_steps, phys, steps, ckpt,
-                                                 grad_pos, grad_vel, ctx.fixed_steps, want_phys=needs[7])
+                                                 grad_pos, grad_vel, ctx.fixed_steps, want_phys=needs[7],
+                                                 grad_frames=grad_frames, record_every=ctx.record_every)
         return (None, g_pos if needs[1] else None, g_vel if needs[2] else None, None,
-                g_delta if needs[4] and ctx.fixed_steps < 0 else None, None, None, g_phys)
+                g_delta if needs[4] and ctx.fixed_steps < 0 else None, None, None, g_phys, None)

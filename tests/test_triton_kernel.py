@@ -133,9 +133,9 @@ def test_adjoint_memory_is_checkpointed_in_chunks(params):
     phys = triton_kernel.columns(p, None, 3, DEVICE, torch.float64)
     args = (p, pos, torch.zeros_like(pos), zeros, torch.zeros(3, 2, dtype=torch.float64, device=DEVICE),
             torch.ones(3, dtype=torch.float64, device=DEVICE), zeros, phys)
-    assert triton_kernel.forward(*args)[-1] is None
+    assert triton_kernel.forward(*args)[5] is None
     longest = p.max_drag_steps + p.settle_max_substeps + 1
-    out_pos, out_vel, steps, *_, ckpt = triton_kernel.forward(*args, save=True)
+    out_pos, out_vel, steps, _, _, ckpt, _ = triton_kernel.forward(*args, save=True)
     chunk = triton_kernel.chunk_substeps(longest)
     assert ckpt.shape == (3, longest // chunk + 1, 4, p.n_nodes)
     assert torch.equal(ckpt[:, 0, 0], pos[..., 0]) and torch.equal(ckpt[:, 0, 1], pos[..., 1])
@@ -144,16 +144,34 @@ def test_adjoint_memory_is_checkpointed_in_chunks(params):
     assert torch.equal(ckpt[:, 1, 0], free[0][..., 0]) and torch.equal(ckpt[:, 1, 3], free[1][..., 1])
 
 
-def test_frames_fall_back_to_eager(params):
+@pytest.mark.parametrize("differentiable", [False, True])
+def test_frames_match_eager(params, differentiable):
+    """Frames recorded in the kernel, per rope up to its own stop, equal the eager loop's; a loss on differentiable
+    frames has the eager gradient (the adjoint adds each frame's gradient at its substep)."""
     p = short(params, n_nodes=6, length=0.15)
     ref, tri = sims(p, torch.float64)
-    pos = crumpled(2, p, sigma=0.5, seed=2).to(DEVICE)
-    node = torch.tensor([0, 5], device=DEVICE)
-    delta = torch.tensor([[0.02, 0.0], [0.0, 0.02]], dtype=torch.float64, device=DEVICE)
-    assert "frames" in tri.triton_unsupported(record_every=10)
-    a, ia = ref.move(pos, node, delta, return_info=True, record_every=10)
-    b, ib = tri.move(pos, node, delta, return_info=True, record_every=10)
-    assert torch.equal(a, b) and torch.equal(ia.frames, ib.frames)
+    assert tri.uses_triton(record_every=7) and tri.triton_unsupported(record_every=7) is None
+    pos = crumpled(3, p, sigma=0.5, seed=2).to(DEVICE)
+    pos[2] = torch.stack([torch.linspace(-0.075, 0.075, p.n_nodes, dtype=torch.float64),
+                          torch.zeros(p.n_nodes, dtype=torch.float64)], -1).to(DEVICE)     # at rest
+    node = torch.tensor([0, 5, 2], device=DEVICE)
+    delta = torch.tensor([[0.0213, 0.0041], [0.0, 0.0172], [0.0, 0.0]], dtype=torch.float64, device=DEVICE)
+    weights = torch.randn(40, 3, p.n_nodes, 2, dtype=torch.float64,
+                          generator=torch.Generator().manual_seed(4)).to(DEVICE)
+    outputs = []
+    for sim in (ref, tri):
+        x = pos.clone().requires_grad_(True)
+        d = delta.clone().requires_grad_(True)
+        out, info = sim.move(x, node, d, return_info=True, record_every=7, differentiable_frames=differentiable)
+        loss = (info.frames * weights[:len(info.frames)]).sum() + (out ** 2).sum()
+        outputs.append((info, torch.autograd.grad(loss, (x, d))))
+    (ia, ga), (ib, gb) = outputs
+    steps = ib.substeps.tolist()
+    assert steps[2] == p.settle_check_every and steps[0] > steps[2], steps     # ropes stop at different substeps
+    assert ia.frames.shape == ib.frames.shape and (ia.frames - ib.frames).abs().max().item() < 1e-12
+    assert ib.frames.requires_grad == differentiable
+    for a, b in zip(ga, gb):
+        assert (a - b).abs().max().item() < 1e-9 * a.abs().max().item(), (a, b)
 
 
 def test_bad_inputs_name_the_problem(params):
@@ -193,7 +211,7 @@ def test_every_kernel_compiles_for_a_gpu_without_one():
                          text=True, env=env, timeout=600, cwd=os.path.dirname(os.path.dirname(__file__)))
     assert out.returncode == 0, out.stderr[-3000:]
     rows = [line.split() for line in out.stdout.splitlines() if line.startswith(("move", "adjoint"))]
-    assert len(rows) == 12, out.stdout
+    assert len(rows) == 16, out.stdout
     for row in rows:
         registers = row[-2]
         assert registers.isdigit() and 0 < int(registers) <= 255, row
