@@ -171,31 +171,30 @@ def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
     """Start (grey), final shape (blue) and target (dashed, at the final shape's centroid: the error ignores
     translation) of each seed's first episode, a row per method; every panel the same view and scale, and the same
     episode in each column (the episodes are paired)."""
+    def placed(sh):
+        """(start, final, target moved onto the final shape's centroid) of one episode's shapes."""
+        final, tgt = np.array(sh["final"]), np.array(sh["target"])
+        return np.array(sh["start"]), final, tgt - tgt.mean(0) + final.mean(0)
+
     panels = _gallery_panels(grid, done, target)
     seeds = list(grid["seeds"])
-    shown = []
-    for _, row in panels:
-        for sh in row:
-            if sh is not None:
-                final, tgt = np.array(sh["final"]), np.array(sh["target"])
-                tgt = tgt - tgt.mean(0) + final.mean(0)
-                shown.append((np.array(sh["start"]), final, tgt))
-    lim = max(float(np.abs(np.concatenate([np.concatenate(s) for s in shown])).max()), 0.1) * 1.05
-    fig, axes = plt.subplots(len(panels), len(seeds), figsize=(1.9 * len(seeds) + 1.6, 1.9 * len(panels) + 0.5),
+    rows = [(label, [None if sh is None else placed(sh) for sh in row]) for label, row in panels]
+    drawn = [a for _, row in rows for p in row if p is not None for a in p]
+    lim = max(float(np.abs(np.concatenate(drawn)).max()), 0.1) * 1.05
+    fig, axes = plt.subplots(len(rows), len(seeds), figsize=(1.9 * len(seeds) + 1.6, 1.9 * len(rows) + 0.5),
                              squeeze=False)
-    it = iter(shown)
-    for i, (label, row) in enumerate(panels):
-        for j, sh in enumerate(row):
+    for i, (label, row) in enumerate(rows):
+        for j, shapes in enumerate(row):
             ax = axes[i, j]
             ax.set_xlim(-lim, lim)
             ax.set_ylim(-lim, lim)
             ax.set_aspect("equal")
             ax.set_xticks([])
             ax.set_yticks([])
-            if sh is None:
+            if shapes is None:
                 ax.text(0, 0, "not run", ha="center", va="center", fontsize=7, color="0.5")
                 continue
-            start, final, tgt = next(it)
+            start, final, tgt = shapes
             ax.plot(*start.T, color="0.7", lw=1)
             ax.plot(*tgt.T, "k--", lw=1)
             ax.plot(*final.T, color="tab:blue", lw=1.5)

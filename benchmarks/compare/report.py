@@ -317,7 +317,9 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
             written = make_figures(grid, done, Path(figures)) + make_cost_figures(grid, costs, Path(figures))
         except ImportError:
             written = []
-        assert not written or sorted(p.name for p in written) == sorted(names), (written, names)
+        if written and sorted(p.name for p in written) != sorted(names):      # the report would link other files
+            raise RuntimeError(f"the figures written {sorted(p.name for p in written)} are not the ones the report "
+                               f"links {sorted(names)}")
     kept = ""
     if doc.exists():                           # sections of other benchmarks below the marker survive a rewrite
         old = doc.read_text()

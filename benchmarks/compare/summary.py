@@ -24,6 +24,19 @@ def heldout_source(grid: dict[str, Any]) -> str:
     return (grid.get("main") or {}).get("heldout_trained_on", "random")
 
 
+def task_source(grid: dict[str, Any], method: str, variant: str, task: str) -> str | None:
+    """The task whose cells hold a row's episodes on ``task``, or None where the row does not run there: a learner
+    on a held-out shape is evaluated there by its cells trained on ``heldout_source`` (if its variant evaluates the
+    held-out shapes, ``eval_targets``); every other row by its own cells on the task."""
+    spec = grid["methods"][method]
+    v = spec["variants"][variant]
+    targets = v.get("targets", grid["targets"])
+    if task in grid.get("heldout", {}) and spec["kind"] == "agent":
+        source = heldout_source(grid)
+        return source if source in targets and "eval_targets" in (v.get("set") or {}) else None
+    return task if task in targets else None
+
+
 def _episodes(grid: dict[str, Any], done: dict[tuple, dict], method: str, variant: str, task: str,
               trained_on: str) -> dict[tuple[int, int], dict]:
     """(seed, episode) -> episode record of one row on one task (a learner on a held-out shape: its evaluation
@@ -93,16 +106,12 @@ def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
             lines.append("| **from 64 px pictures** |" + " |" * (len(head) - 1))
         for method, variant in rows:
             texts = []
-            variant_targets = grid["methods"][method]["variants"][variant].get("targets", grid["targets"])
             for task in tasks:
-                held = task in grid.get("heldout", {}) and grid["methods"][method]["kind"] == "agent"
-                trained_on = heldout_source(grid) if held else task
-                if (trained_on not in variant_targets) or (held and "eval_targets" not in
-                                                           (grid["methods"][method]["variants"][variant].get("set")
-                                                            or {})):
+                source = task_source(grid, method, variant, task)
+                if source is None:
                     texts.append("")
                     continue
-                runs, n = _row_runs(grid, done, method, variant, task, trained_on)
+                runs, n = _row_runs(grid, done, method, variant, task, source)
                 texts.append(_cell_text(runs, n, n_all))
             train, per_ep, wall = _costs(grid, done, method, variant, ["random"])
             lines.append("| " + " | ".join([method_label(grid, method), variant, *texts, train, per_ep, wall])
@@ -112,9 +121,9 @@ def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
 
 def readme_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
     """The README's short form of the summary, one line per main row (named by the variant's ``short``, else the
-    method's): random, random_curve, the held-out shapes
-    pooled (learners: trained on ``heldout_source``) and random from 64 px pictures (the method's image row), with its training
-    env steps and the simulator moves of one episode (on random, from node positions)."""
+    method's): random, random_curve, the held-out shapes pooled (``task_source``) and random from 64 px pictures (the
+    method's image row), with its training env steps and the simulator moves of one episode (on random, from node
+    positions)."""
     heldout = [t for t in (grid.get("main") or {}).get("targets", []) if t in grid.get("heldout", {})]
     n_all = len(grid["seeds"])
     images = dict(main_rows(grid, image=True))
@@ -124,20 +133,20 @@ def readme_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
     pictured: set[str] = set()
     for method, variant in main_rows(grid):
         spec = grid["methods"][method]
-        agent = spec["kind"] == "agent"
         v = spec["variants"][variant]
         texts = []
         for task in ("random", "random_curve"):
             runs, n = _row_runs(grid, done, method, variant, task, task)
-            texts.append(_cell_text(runs, n, n_all) if task in v.get("targets", grid["targets"]) else "")
-        held_runs, seeds = [], set()
+            texts.append(_cell_text(runs, n, n_all) if task_source(grid, method, variant, task) else "")
+        held_runs, seeds, runs_there = [], set(), False
         for task in heldout:
-            source = heldout_source(grid) if agent else task
+            source = task_source(grid, method, variant, task)
+            if source is None:
+                continue
+            runs_there = True
             runs, _ = _row_runs(grid, done, method, variant, task, source)
             held_runs += runs
             seeds |= {s for s in grid["seeds"] if (method, variant, source, s) in done}
-        runs_there = ("eval_targets" in (v.get("set") or {})) if agent else \
-            any(t in v.get("targets", grid["targets"]) for t in heldout)
         texts.append(_cell_text(held_runs, len(seeds), n_all) if held_runs else ("not run" if runs_there else ""))
         if method in images and method not in pictured:       # a method's image row, beside its first main row
             pictured.add(method)
@@ -196,8 +205,10 @@ def paired_section(grid: dict[str, Any], done: dict[tuple, dict], reference: tup
             if (method, variant) == reference:
                 continue
             for task in main.get("targets", []):
-                held = task in grid.get("heldout", {}) and grid["methods"][method]["kind"] == "agent"
-                a = _episodes(grid, done, method, variant, task, heldout_source(grid) if held else task)
+                source = task_source(grid, method, variant, task)
+                if source is None:
+                    continue
+                a = _episodes(grid, done, method, variant, task, source)
                 b = _episodes(grid, done, *reference, task, task)
                 if not a or not b:
                     continue
