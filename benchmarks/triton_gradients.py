@@ -2,12 +2,15 @@
 
     TRITON_INTERPRET=1 python -m benchmarks.triton_gradients          (CPU, Triton's interpreter, ~1 min)
     python -m benchmarks.triton_gradients --device cuda               (the compiled kernels)
+    TRITON_INTERPRET=1 python -m benchmarks.triton_gradients --full   (+ one full-length move, ~2 min more)
 
 The problem is the tests' (tests/test_triton_kernel.py): seven ropes with short moves (drags of at most 40 substeps,
 settle checked every 20 up to 60; max_speed 1 m/s so drags longer than 4 cm run faster), each stopping at its own
 substep, through two chained moves and a free evolution of 25 substeps. For each input (start positions and
 velocities, drag, k_s, k_b, k_d, mass) it prints the largest error over the largest entry, of the Triton gradient
-against eager autograd in the same dtype, and of each against float64 eager autograd.
+against eager autograd in the same dtype, and of each against float64 eager autograd. ``--full`` adds one move
+with the real params (params/cable.yaml: 20 nodes, up to 2,001 substeps, so the adjoint crosses some 30 of its
+64-substep chunks) of two ropes in float64.
 """
 from __future__ import annotations
 
@@ -71,9 +74,32 @@ def relative_error(a: torch.Tensor, b: torch.Tensor) -> float:
     return ((a.double() - b.double()).abs().max() / b.double().abs().max()).item()
 
 
+def full_length(device) -> tuple[list[int], list[float]]:
+    """One move of two ropes with the real params in float64 (a loss on the final positions): the substeps each
+    took and the relative error of each Triton gradient against eager autograd."""
+    p = diffdlo.load_params("cable")
+    node = torch.tensor([3, 17], device=device)
+    delta = torch.tensor([[0.0437, -0.0213], [-0.0712, 0.0555]], dtype=torch.float64, device=device)
+    weights = torch.randn(1, 2, p.n_nodes, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    grads, steps = [], None
+    for backend in ("torch", "triton"):
+        sim = diffdlo.Simulator(p, device=device, dtype=torch.float64, backend=backend)
+        pos = sim.random_shape(2, torch.Generator().manual_seed(5))
+        x = pos.clone().requires_grad_(True)
+        v = torch.zeros_like(pos).requires_grad_(True)
+        d = delta.clone().requires_grad_(True)
+        phys = diffdlo.Physics.of(p, 2, device=device, dtype=torch.float64, requires_grad=True)
+        out, info = sim.move(x, node, d, vel=v, physics=phys, return_info=True)
+        loss = (out * weights[0].to(device)).sum()
+        grads.append(torch.autograd.grad(loss, (x, v, d, phys.k_s, phys.k_b, phys.k_d, phys.mass)))
+        steps = info.substeps.tolist()
+    return steps, [relative_error(b, a) for a, b in zip(*grads)]
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu", help="cpu (needs TRITON_INTERPRET=1) or cuda")
+    parser.add_argument("--full", action="store_true", help="also one move with the real params (~2 min more)")
     args = parser.parse_args(argv)
     from diffdlo import triton_kernel
     reason = triton_kernel.device_reason(torch.device(args.device))
@@ -96,6 +122,10 @@ def main(argv: list[str] | None = None) -> None:
     for dtype in (torch.float64, torch.float32):
         errors = [relative_error(a, b) for a, b in zip(rows[dtype, "triton"], rows[dtype, "torch"])]
         print(f"{str(dtype).removeprefix('torch.'):<8} {'triton':<7} " + " ".join(f"{e:>9.1e}" for e in errors))
+    if args.full:
+        steps, errors = full_length(args.device)
+        print(f"Full-length move (params/cable.yaml, float64; substeps {steps}), Triton against eager autograd:")
+        print(f"{'float64':<8} {'triton':<7} " + " ".join(f"{e:>9.1e}" for e in errors))
 
 
 if __name__ == "__main__":
