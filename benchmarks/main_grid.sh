@@ -1,5 +1,5 @@
 #!/bin/bash
-# The comparison's main grid (benchmarks/compare.yaml `main`), cheapest rows first, two cells at once, niced; then the
+# The comparison's grid (benchmarks/compare.yaml): the main rows, cheapest first, two cells at once, niced; then the
 # appendix and the secondary rows. Finished cells are skipped and learners resume, so rerun it to continue:
 #   nohup setsid benchmarks/main_grid.sh > runs/main_grid.log 2>&1 &
 # then `python -m benchmarks.compare --collect --out runs/compare` adds the finished cells to docs/results/cells.jsonl
@@ -11,13 +11,10 @@ MAIN="random random_curve arc s_curve hook wave"
 nice -n 10 $C --methods greedy cem gradient --variants default --targets $MAIN
 nice -n 10 $C --methods apg ppo --variants tuned
 nice -n 10 $C --methods ppo --variants fewest_moves
-nice -n 10 $C --methods cem ppo pets --variants tuned_image
-nice -n 10 $C --methods pets --variants tuned
-nice -n 10 $C --methods sac --variants tuned
-nice -n 10 $C --methods planet --variants default
-nice -n 10 $C --methods sac --variants tuned_image
-nice -n 10 $C --methods planet --variants image
-nice -n 10 $C --methods greedy cem gradient --variants default --targets horizontal vertical diagonal antidiagonal
-nice -n 10 $C --methods apg --variants greedy h4 h4_critic score
-nice -n 10 $C --methods sac ppo --variants points abs_diff delta_gain
-nice -n 10 $C --methods distill                  # its teacher: the same seed's ppo/fewest_moves cell
+# every other row in one pool, so both jobs stay busy to the last cell: the main rows first, cheapest first, then
+# the named lines (planners), the distillation (its teacher: the same seed's ppo/fewest_moves cell), the APG
+# variants and the secondary rows
+nice -n 10 $C --rows cem/tuned_image ppo/tuned_image pets/tuned_image pets/tuned sac/tuned planet/default \
+    sac/tuned_image planet/image greedy/default cem/default gradient/default distill/default \
+    apg/greedy apg/h4 apg/h4_critic apg/score sac/points ppo/points sac/abs_diff sac/delta_gain \
+    sac/points_utd1 pets/upt100 pets/h2 sac/image ppo/image ppo/image_e2e

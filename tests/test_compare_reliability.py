@@ -320,6 +320,7 @@ def test_out_path_and_learner_device_are_not_settings():
     (["--targets", "diagonal", "diagonl"], ["'diagonl'", "diagonal", "random"]),
     (["--seeds", "0", "7"], ["unknown 7;", "0, 1"]),
     (["--methods", "cem", "--variants", "points"], ["'points'", "the methods cem have", "default"]),
+    (["--rows", "greedy/default", "ppo/pointz"], ["--rows", "'ppo/pointz'", "ppo/points", "greedy/default"]),
     (["--jobs", "0"], ["--jobs", "0"]),
     (["--jobs", "-3"], ["--jobs", "-3"]),
     (["--ray", "local", "--ray-cpus", "0"], ["--ray-cpus", "0"]),
@@ -333,6 +334,14 @@ def test_bad_filters_and_counts_exit_2_on_one_line(extra, named, capsys):
     assert len(lines) == 1, err
     for word in named:
         assert word in lines[0], (word, lines[0])
+
+
+def test_rows_select_cells_in_their_order(capsys):
+    """--rows runs exactly the named rows, the later-named row's cells after the earlier one's."""
+    assert compare.main(["--quick", "--rows", "ppo/points", "greedy/default", "--seeds", "0", "--list"]) == 0
+    modules = [line.split()[3] for line in capsys.readouterr().out.splitlines() if line.startswith(("todo", "done"))]
+    assert modules and set(modules) == {"agents.ppo", "planners.greedy"}, modules
+    assert modules == sorted(modules, key=lambda m: m != "agents.ppo"), modules
 
 
 # 7. the Ray path

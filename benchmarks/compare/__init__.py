@@ -3,6 +3,7 @@ APG on the same tasks and the same episodes, several seeds each.
 
     python -m benchmarks.compare --quick                       # tiny grid, minutes: format example, not results
     python -m benchmarks.compare --methods cem sac --targets random --seeds 0 1 --jobs 2
+    python -m benchmarks.compare --rows pets/tuned sac/tuned --jobs 2   # these rows, in this order, one job pool
     python -m benchmarks.compare --collect --out runs/compare  # finished cells -> docs/results/cells.jsonl + report
     python -m benchmarks.compare --report-only                 # rebuild docs/RESULTS.md from the committed records
 

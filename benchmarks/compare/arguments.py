@@ -38,6 +38,9 @@ def parser(description: str) -> OneLineParser:
     ap.add_argument("--variants", nargs="+", default=None)
     ap.add_argument("--targets", nargs="+", default=None)
     ap.add_argument("--seeds", nargs="+", type=int, default=None)
+    ap.add_argument("--rows", nargs="+", default=None, metavar="METHOD/VARIANT",
+                    help="only these rows, their cells run in this order (the other filters still apply): one "
+                         "invocation for several rows keeps every job busy until the last cell")
     ap.add_argument("--out", default=None, help="cell root (default runs/compare; --quick: runs/compare-quick)")
     ap.add_argument("--jobs", type=positive_int, default=os.cpu_count() or 1,
                     help="cells at once, at least 1 (default: cores)")
@@ -86,7 +89,22 @@ def filter_errors(args: argparse.Namespace, grid: dict[str, Any]) -> list[str]:
     if bad:
         scope = f"the methods {' '.join(chosen)} have" if chosen != methods else "this grid has"
         errors.append(_unknown("--variants", bad, variants, scope))
+    for row in args.rows or []:
+        method, _, variant = row.partition("/")
+        if method not in grid["methods"] or variant not in grid["methods"][method]["variants"]:
+            known = [f"{m}/{v}" for m, spec in grid["methods"].items() for v in spec["variants"]]
+            errors.append(_unknown("--rows", [row], known, "this grid has the rows"))
     return errors
+
+
+def select_rows(cells: list[dict[str, Any]], rows: list[str] | None) -> list[dict[str, Any]]:
+    """The cells of ``rows`` (METHOD/VARIANT), ordered as the rows are (each row's cells in their own order); all
+    cells when ``rows`` is None."""
+    if rows is None:
+        return cells
+    order = {row: i for i, row in enumerate(dict.fromkeys(rows))}
+    chosen = [c for c in cells if f"{c['method']}/{c['variant']}" in order]
+    return sorted(chosen, key=lambda c: order[f"{c['method']}/{c['variant']}"])
 
 
 def option_errors(args: argparse.Namespace) -> list[str]:

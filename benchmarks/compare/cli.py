@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from . import __doc__ as HARNESS_DOC
-from .arguments import filter_errors, option_errors, parser
+from .arguments import filter_errors, option_errors, parser, select_rows
 from .grid import build_cells, command_line, is_done, load_grid
 from diffdlo.files import OutBusyError, out_lock
 from .processes import Terminated, signals_stop_compare
@@ -91,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     errors = filter_errors(args, grid) + option_errors(args)
     if errors:
         ap.error("; ".join(errors))
-    cells = build_cells(grid, out, args.methods, args.variants, args.targets, args.seeds, args.learner_device)
+    cells = select_rows(build_cells(grid, out, args.methods, args.variants, args.targets, args.seeds,
+                                    args.learner_device), args.rows)
     if not cells:
         ap.error("no cell matches the filters")
     results_file = Path(args.results) if args.results else RESULTS_FILE
