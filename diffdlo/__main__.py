@@ -1,7 +1,7 @@
 """``python -m diffdlo --info``: what this installation runs on, for bug reports and for checking a setup.
 
-Prints the version, the simulator backend in use (the fused C++ kernel, or the eager torch path and why), the torch
-version, the devices, torch's threads and the folder the parameter files are read from.
+Prints the version, the simulator backend in use (the fused C++ kernel, or the eager torch path and why), the one on
+CUDA devices (the Triton kernels, or the eager path and why), the torch version, the devices, torch's threads and the folder the parameter files are read from.
 """
 from __future__ import annotations
 
@@ -24,9 +24,21 @@ def backend_line() -> str:
         reason = kernel.unavailable_reason()
     if reason is None:
         return (f"fused C++ kernel ({kernel.lanes()} ropes per lane group; library {kernel.library_path()}); "
-                f"the PID controller and non-CPU devices use the eager torch path")
+                f"the PID controller uses the eager torch path")
     return (f"eager torch path, about 100-500x slower per move: the fused C++ kernel is unavailable ({reason}); "
             f"install g++ (or clang++) or set $CXX, then rerun")
+
+
+def gpu_backend_line() -> str:
+    """What ``backend="auto"`` runs on CUDA tensors: the Triton kernels (forward and adjoint) where triton imports,
+    else the eager torch path and why."""
+    from diffdlo import triton_kernel
+    reason = triton_kernel.unavailable_reason()
+    if reason is not None:
+        return f"eager torch path: {reason}"
+    import triton
+    here = "" if torch.cuda.is_available() else "; no CUDA device here"
+    return f"fused Triton kernels, forward and adjoint (triton {triton.__version__}){here}"
 
 
 def devices_line() -> str:
@@ -44,6 +56,7 @@ def info() -> str:
     rows = {
         "diffdlo": f"{diffdlo.__version__} ({diffdlo.__file__})",
         "simulator backend": backend_line(),
+        "on CUDA devices": gpu_backend_line(),
         "torch": torch.__version__,
         "devices": devices_line(),
         "torch threads": f"{torch.get_num_threads()} intra-op, {torch.get_num_interop_threads()} inter-op",

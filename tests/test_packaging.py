@@ -125,6 +125,9 @@ def test_info_reports_version_backend_torch_devices_threads_and_params(capsys):
     assert diffdlo.__version__ in out and "torch:" in out and torch.__version__ in out
     backend = "fused C++ kernel" if kernel.available() else "eager torch path"
     assert f"simulator backend: {backend}" in out
+    from diffdlo import triton_kernel
+    gpu = "fused Triton kernels, forward and adjoint" if triton_kernel.available() else "eager torch path: triton"
+    assert re.search(rf"on CUDA devices: +{gpu}", out), out
     assert "devices:" in out and "cpu" in out
     assert f"{torch.get_num_threads()} intra-op" in out
     assert re.search(rf"params files: +{re.escape(str(PARAMS_DIR))}\n", out)
