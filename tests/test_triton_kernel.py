@@ -123,6 +123,25 @@ def test_backward_is_the_triton_adjoint(params, monkeypatch):
     assert torch.isfinite(grad).all() and grad.abs().max() > 0
 
 
+def test_gradients_across_programs(params):
+    """More ropes than one program holds: each program's scratch and each rope's slots are its own."""
+    p = short(params, n_nodes=6, length=0.15)
+    ref, tri = sims(p, torch.float64)
+    batch = triton_kernel.BLOCK_ROPES + 3
+    gen = torch.Generator().manual_seed(11)
+    pos = crumpled(batch, p, sigma=0.7, seed=11).to(DEVICE)
+    node = torch.randint(0, p.n_nodes, (batch,), generator=gen).to(DEVICE)
+    delta = ((torch.rand(batch, 2, generator=gen, dtype=torch.float64) - 0.5) * 0.06).to(DEVICE)
+    weights = torch.randn(batch, p.n_nodes, 2, generator=gen, dtype=torch.float64).to(DEVICE)
+    grads = []
+    for sim in (ref, tri):
+        x = pos.clone().requires_grad_(True)
+        d = delta.clone().requires_grad_(True)
+        grads.append(torch.autograd.grad((sim.move(x, node, d) * weights).sum(), (x, d)))
+    for a, b in zip(*grads):
+        assert triton_gradients.relative_error(b, a) < 1e-9
+
+
 def test_adjoint_memory_is_checkpointed_in_chunks(params):
     """About 2 sqrt(K) saved states per rope: checkpoints every chunk_substeps(K) substeps, only when a gradient is
     wanted."""
