@@ -204,6 +204,18 @@ if triton is not None:
         return gdx, gdy
 
     @triton.jit
+    def _drag_of(node_ptr, ngrasp_ptr, delta_ptr, speed_ptr, rope, rope64, rmask, jj):
+        """Per rope: the grasped node's mask ([R, N_PAD]), the drag's substeps, the drag (dx, dy), its reference
+        speed and its length (floored at 1e-12)."""
+        g = tl.load(node_ptr + rope, mask=rmask, other=0).to(tl.int32)
+        ng = tl.load(ngrasp_ptr + rope, mask=rmask, other=0).to(tl.int32)
+        dx = tl.load(delta_ptr + rope64 * 2, mask=rmask, other=0.0)
+        dy = tl.load(delta_ptr + rope64 * 2 + 1, mask=rmask, other=0.0)
+        sp = tl.load(speed_ptr + rope, mask=rmask, other=1.0)
+        safe = tl.maximum(tl.sqrt(dx * dx + dy * dy), 1e-12)
+        return jj == g[:, None], ng, dx, dy, sp, safe
+
+    @triton.jit
     def _move_kernel(pos_ptr, vel_ptr, node_ptr, delta_ptr, speed_ptr, ngrasp_ptr, phys_ptr, scalar_ptr,
                      out_pos_ptr, out_vel_ptr, steps_ptr, settled_ptr, diverged_ptr, ckpt_ptr, frames_ptr,
                      B, check_every, max_settle, fixed_steps, slots, every, frame_cap,
@@ -233,13 +245,7 @@ if triton is not None:
         kb = tl.load(phys_ptr + rope64 * 4 + 1, mask=rmask, other=0.0)[:, None]
         hm = h * tl.load(phys_ptr + rope64 * 4 + 2, mask=rmask, other=1.0)[:, None]
         damp = tl.load(phys_ptr + rope64 * 4 + 3, mask=rmask, other=1.0)[:, None]
-        g = tl.load(node_ptr + rope, mask=rmask, other=0).to(tl.int32)          # [R]
-        ng = tl.load(ngrasp_ptr + rope, mask=rmask, other=0).to(tl.int32)
-        dx = tl.load(delta_ptr + rope64 * 2, mask=rmask, other=0.0)
-        dy = tl.load(delta_ptr + rope64 * 2 + 1, mask=rmask, other=0.0)
-        sp = tl.load(speed_ptr + rope, mask=rmask, other=1.0)
-        safe = tl.maximum(tl.sqrt(dx * dx + dy * dy), 1e-12)
-        grasped = jj == g[:, None]
+        grasped, ng, dx, dy, sp, safe = _drag_of(node_ptr, ngrasp_ptr, delta_ptr, speed_ptr, rope, rope64, rmask, jj)
         sx = tl.sum(tl.where(grasped, x, 0.0), axis=1)
         sy = tl.sum(tl.where(grasped, y, 0.0), axis=1)
         ckpt = rope64[:, None] * (slots * 4 * N) + jj              # checkpoint slot 0 of rope r, x of node j
@@ -343,13 +349,7 @@ if triton is not None:
         hm = hm_r[:, None]
         damp = damp_r[:, None]
         coef = hm * damp
-        g = tl.load(node_ptr + rope, mask=rmask, other=0).to(tl.int32)
-        ng = tl.load(ngrasp_ptr + rope, mask=rmask, other=0).to(tl.int32)
-        dx = tl.load(delta_ptr + rope64 * 2, mask=rmask, other=0.0)
-        dy = tl.load(delta_ptr + rope64 * 2 + 1, mask=rmask, other=0.0)
-        sp = tl.load(speed_ptr + rope, mask=rmask, other=1.0)
-        safe = tl.maximum(tl.sqrt(dx * dx + dy * dy), 1e-12)
-        grasped = jj == g[:, None]
+        grasped, ng, dx, dy, sp, safe = _drag_of(node_ptr, ngrasp_ptr, delta_ptr, speed_ptr, rope, rope64, rmask, jj)
         x0 = tl.load(pos_ptr + offs, mask=nmask, other=0.0)
         y0 = tl.load(pos_ptr + offs + 1, mask=nmask, other=0.0)
         sx = tl.sum(tl.where(grasped, x0, 0.0), axis=1)
