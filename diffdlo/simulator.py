@@ -344,17 +344,8 @@ class Simulator:
                      differentiable_frames=False):
         pos, _, steps, settled, diverged, buffer = self._triton_apply(pos, vel, node, delta, path_steps, -1, physics,
                                                                       record_every)
-        if bool(diverged.any()):
-            ids = diverged.nonzero().flatten().tolist()
-            raise SimulationError(f"simulation diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for batch "
-                                  f"members {ids} during a move (node={node.tolist()}, delta={delta.tolist()})")
-        if not return_info:
-            return pos
-        frames = (kernel.assemble_frames(record_every, buffer, pos, steps, differentiable_frames) if record_every > 0
-                  else None)
-        path_cpu, steps = path_steps.cpu(), steps.cpu()
-        return pos, MoveInfo(drag_substeps=path_cpu, settle_substeps=steps - path_cpu, settled=settled.cpu(),
-                             frames=frames)
+        return self._kernel_result(pos, node, delta, path_steps, steps, settled, diverged, buffer, return_info,
+                                   record_every, differentiable_frames)
 
     def _move_kernel(self, pos, vel, node, delta, speed, path_steps, return_info, record_every=0, physics=None,
                      differentiable_frames=False):
@@ -364,7 +355,15 @@ class Simulator:
         # speed's dependence on delta is inside the kernel's adjoint, so it goes in detached
         pos, _, steps, settled, diverged, buffer = kernel.KernelRun.apply(setup, pos, vel, node, delta,
                                                                           speed.detach(), path_steps, phys)
-        if diverged.any():
+        return self._kernel_result(pos, node, delta, path_steps, steps, settled, diverged, buffer, return_info,
+                                   record_every, differentiable_frames)
+
+    @staticmethod
+    def _kernel_result(pos, node, delta, path_steps, steps, settled, diverged, buffer, return_info, record_every,
+                       differentiable_frames):
+        """What the fused kernels (C++ or Triton) return to ``move``: a diverged rope raised, else pos, and with
+        ``return_info`` its MoveInfo (on the CPU, whatever the device)."""
+        if bool(diverged.any()):
             ids = diverged.nonzero().flatten().tolist()
             raise SimulationError(f"simulation diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for batch "
                                   f"members {ids} during a move (node={node.tolist()}, delta={delta.tolist()})")
@@ -372,7 +371,8 @@ class Simulator:
             return pos
         frames = (kernel.assemble_frames(record_every, buffer, pos, steps, differentiable_frames) if record_every > 0
                   else None)
-        return pos, MoveInfo(drag_substeps=path_steps, settle_substeps=steps - path_steps, settled=settled,
+        path_steps, steps = path_steps.cpu(), steps.cpu()
+        return pos, MoveInfo(drag_substeps=path_steps, settle_substeps=steps - path_steps, settled=settled.cpu(),
                              frames=frames)
 
     # ----------------------------------------------------------------- shapes
