@@ -352,9 +352,12 @@ def test_summary_names_missing_cells_with_their_cost():
     cem_row = next(line for line in table.splitlines() if line.startswith("| CEM"))
     assert "| 100 % · 10.0 (3/5 seeds) | not run |" in cem_row and "| 3,010 | 3.0 s / episode |" in cem_row
     missing = "\n".join(missing_section(grid, done))
-    cem_cost = 27 * grid["methods"]["cem"]["variants"]["default"]["cpu_min"] / 60      # 2 + 5 x 5 cells
-    assert f"| cem/default | 27 | random (3 4); random_curve (0 1 2 3 4);" in missing
-    assert f" | {cem_cost:.1f} |" in missing
+    # 2 + 5 x 5 cells left, priced at the row's measured minute per cell
+    assert "| cem/default | 27 | random (3 4); random_curve (0 1 2 3 4);" in missing
+    assert " | 1 (measured) | 0.5 |" in missing.split("| cem/default |")[1].splitlines()[0]
+    gradient = grid["methods"]["gradient"]["variants"]["default"]["cpu_min"]            # none finished: the estimate
+    row = missing.split("| gradient/default |")[1].splitlines()[0]
+    assert f" | {gradient:.0f} (estimate) | {30 * gradient / 60:.1f} |" in row
 
 
 def test_a_cell_that_reads_another_cells_run_names_its_own_seed_and_target():

@@ -224,8 +224,17 @@ def paired_section(grid: dict[str, Any], done: dict[tuple, dict], reference: tup
     return lines + [""]
 
 
+def cell_minutes(grid: dict[str, Any], done: dict[tuple, dict], method: str, variant: str) -> tuple[float, bool]:
+    """(minutes, measured) one cell of a row costs: the mean wall of the row's finished cells, or, for a row with
+    none, compare.yaml's ``cpu_min`` (an estimate; nan when it has none)."""
+    walls = [float(r["wall_s"]) for (m, v, _, _), r in done.items() if (m, v) == (method, variant) and "wall_s" in r]
+    if walls:
+        return float(np.mean(walls)) / 60, True
+    return float(grid["methods"][method]["variants"][variant].get("cpu_min", float("nan"))), False
+
+
 def missing_section(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
-    """The main grid's cells not run yet, one line per row with its cost (the variant's cpu_min x cells)."""
+    """The main grid's cells not run yet, one line per row with its cost (minutes per cell x cells)."""
     main = grid.get("main") or {}
     rows = []
     total = 0.0
@@ -242,18 +251,21 @@ def missing_section(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
                     parts.append(f"{target} ({' '.join(map(str, seeds))})")
                     n += len(seeds)
             if parts:
-                cost = n * float(v.get("cpu_min", float("nan"))) / 60
+                minutes, measured = cell_minutes(grid, done, method, variant)
+                cost = n * minutes / 60
                 total += 0.0 if math.isnan(cost) else cost
-                rows.append(f"| {method}/{variant} | {n} | {'; '.join(parts)} | "
+                per_cell = "unknown" if math.isnan(minutes) else f"{minutes:.0f} ({'measured' if measured else 'estimate'})"
+                rows.append(f"| {method}/{variant} | {n} | {'; '.join(parts)} | {per_cell} | "
                             + ("unknown" if math.isnan(cost) else f"{cost:.1f}") + " |")
     if not rows:
         return ["**The main grid is complete**: every main row on every main task, "
                 f"{len(grid['seeds'])} seeds × {grid['episodes']} episodes.", ""]
     return ["## Main-grid cells not run yet", "",
-            f"Priced at the grid's `cpu_min` (CPU minutes per cell on the 2-core machine, measured): ≈ {total:.1f} "
-            "CPU-hours in all. A learner's held-out columns come with its `random` cells. A cell runs with `python "
-            "-m benchmarks.compare --methods M --variants V --targets T --seeds S`.", "",
-            "| row | cells | task (seeds) | CPU-hours |", "|---|---|---|---|", *rows, ""]
+            f"≈ {total:.1f} CPU-hours in all, each cell priced at the mean wall of its row's finished cells (one "
+            "process per core on the 2-core machine), or for a row with none at the grid's `cpu_min` estimate. A "
+            "learner's held-out columns come with its `random` cells. A cell runs with `python -m benchmarks.compare "
+            "--methods M --variants V --targets T --seeds S`.", "",
+            "| row | cells | task (seeds) | CPU-minutes per cell | CPU-hours |", "|---|---|---|---|---|", *rows, ""]
 
 
 def cpu_hours(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
