@@ -7,6 +7,8 @@ open-loop node error after 1, 5 and 10 moves next to the "nothing moves" baselin
     python benchmarks/planet_model.py --updates 2000            # ~5 min on one CPU core
     python benchmarks/planet_model.py --updates 4000 --set obs_std=0.01
     python benchmarks/planet_model.py --plan-time --envs 16     # seconds per planned move of 16 ropes
+    python benchmarks/planet_model.py --preset rssm --set obs=image --update-time --envs 16 --moves 40
+                                                                # seconds per model update (one core)
 
 Used to size ``seed_episodes`` in params/planet.yaml: trained on random moves only, the model beats the baseline
 after ~1000 updates; trained in the loop on 500 random and 9500 planner-chosen moves (the old default), it did not.
@@ -39,6 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="PlaNet config key")
     ap.add_argument("--plan-time", action="store_true",
                     help="only time the latent planner: one planned move of --envs ropes (untrained model)")
+    ap.add_argument("--update-time", action="store_true",
+                    help="only time model updates (the config's batch of chunks) on --moves random moves of --envs ropes")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     bad = [item for item in args.set if "=" not in item]
@@ -69,17 +73,34 @@ def main(argv: list[str] | None = None) -> int:
         rb.add(obs, a, r, term, trunc, final_obs=final)
         obs = nxt
     print(f"data: {args.moves * args.envs} random transitions in {time.perf_counter() - t0:.1f} s")
-    print("open-loop node error [cm] on held-out ropes (model / nothing moves), after k moves:")
     chunks = cfg.batch_size * (cfg.members if cfg.model == "ensemble" else 1)
-    marks = {u for u in (250, 500, 1000, 2000, 4000, 8000, 16000) if u < args.updates} | {args.updates}
-    t0 = time.perf_counter()
-    for u in range(1, args.updates + 1):
+
+    def update() -> dict[str, torch.Tensor]:
         o, a, r, m = planet.sample_sequences(rb, chunks, cfg.chunk_length)
         loss = model.loss(o, a, r, m)
         opt.zero_grad()
         loss["loss"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         opt.step()
+        return loss
+
+    if args.update_time:
+        update()                                   # the first one allocates
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            update()
+            times.append(time.perf_counter() - t0)
+        phases = max(0, cfg.run.total_steps - cfg.seed_episodes * env.core.max_steps) // cfg.train_every
+        print(f"model update ({chunks} chunks of {cfg.chunk_length}, obs {cfg.task.obs}): median "
+              f"{sorted(times)[2]:.2f} s, min {min(times):.2f} s over 5; a run of total_steps {cfg.run.total_steps} "
+              f"makes {phases * cfg.updates_per_train} updates")
+        return 0
+    print("open-loop node error [cm] on held-out ropes (model / nothing moves), after k moves:")
+    marks = {u for u in (250, 500, 1000, 2000, 4000, 8000, 16000) if u < args.updates} | {args.updates}
+    t0 = time.perf_counter()
+    for u in range(1, args.updates + 1):
+        loss = update()
         if u in marks:
             model.eval()
             ol = openloop.open_loop_eval(model, cfg, horizons=(1, 2, 5, 10))

@@ -1,6 +1,7 @@
 """agents.planet / agents.rssm: RSSM shapes and ELBO terms, free nats, chunk sampling, overfitting, latent CEM,
 open-loop evaluation, CLI smoke runs (points and images) with resume."""
 import json
+import math
 
 import pytest
 import torch
@@ -67,6 +68,22 @@ def test_rssm_shapes_and_loss_terms(obs_type, action):
     for k, v in (o.items() if isinstance(o, dict) else [("obs", o)]):
         assert dec[k].shape == (5, 3, *v.shape[2:])
     assert m.reward(feat).shape == (5, 3)
+
+
+@pytest.mark.parametrize("obs_type", ["points", "image"])
+def test_reconstruction_term_is_the_gaussian_log_likelihood(obs_type, monkeypatch):
+    """recon = 0.5 ((prediction - target) / std)^2 summed over an observation's dims, averaged over the valid steps;
+    std is obs_std for coordinates and 1 for pixels (PlaNet's unit variance)."""
+    cfg = tiny_cfg(obs=obs_type, image_size=40, image_embed=32, cnn_channels=[4, 8, 8], deconv_channels=[8, 4])
+    rb, obs = collect(cfg, 12)
+    m = planet.build_model(cfg, obs, 3, cfg.task.cable_params())
+    o, a, r, mask = planet.sample_sequences(rb, 5, 4)
+    delta = 0.03
+    monkeypatch.setattr(m, "decode", lambda feat: {k: v + delta for k, v in m.obs_target(o if isinstance(o, dict)
+                                                                                         else {"obs": o}).items()})
+    dims = {k: math.prod(v.shape[2:]) for k, v in (o.items() if isinstance(o, dict) else [("obs", o)])}
+    expected = sum(0.5 * (delta / (cfg.obs_std if k in m.float_keys else 1.0)) ** 2 * n for k, n in dims.items())
+    assert m.loss(o, a, r, mask)["recon"].item() == pytest.approx(expected, rel=1e-5)
 
 
 def test_free_nats_clamp_constant_and_no_gradient():
