@@ -382,3 +382,8 @@ def test_a_learner_is_charged_the_simulation_it_acts_and_trains_with():
     assert cost["alone"]["episode_moves"] == 10 and cost["alone"]["train_moves"] == 1000
     assert cost["rollouts"]["episode_moves"] == 10 * (1 + 150)
     assert cost["distilled"]["train_moves"] == 1000 + 5000 and cost["distilled"]["episode_moves"] == 10
+    # the summary figure charges the same, and names a method's second main row by its variant
+    from benchmarks.compare.figures import _summary_points
+    points = {p["label"]: p["spent"] for p in _summary_points(compare.load_grid(), {
+        ("ppo", "tuned", "random", 0): alone, ("ppo", "fewest_moves", "random", 0): rollouts})}
+    assert points == {"PPO": 1000 + 2 * 10, "PPO + policy rollouts": 1000 + 2 * 10 * (1 + 150)}

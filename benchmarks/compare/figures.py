@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 
 from diffdlo.files import replacing
-from .grid import main_rows, method_label
+from .costs import acting_sim_evals
+from .grid import main_rows, row_label
 from .stats import t_quantile
 
 
@@ -65,11 +66,12 @@ def _summary_points(grid: dict[str, Any], done: dict[tuple, dict], task: str = "
             moves = float(np.mean([e["steps"] for e in eps]))
             if grid["methods"][method]["kind"] == "planner":
                 spent = float(np.mean([r.get("sim_evals", 0) for r in cells])) + moves * len(cells[0]["episodes"])
-            else:
-                back = float(np.mean([r.get("sim_backward") or 0 for r in cells]))
-                spent = float(np.mean([r["env_steps"] for r in cells])) + back + moves * len(cells[0]["episodes"])
+            else:        # training (with backpropagated rope-moves and a teacher's rollouts) + acting (its rollouts)
+                train = float(np.mean([r["env_steps"] + (r.get("sim_backward") or 0) + r.get("teacher_sim_evals", 0)
+                                       for r in cells]))
+                spent = train + moves * (1 + acting_sim_evals(cells)) * len(cells[0]["episodes"])
             succ = [e["steps"] for e in eps if e["success"]]
-            points.append({"label": method_label(grid, method) + ("" if not image else " [pictures]"),
+            points.append({"label": row_label(grid, method, variant) + ("" if not image else " [pictures]"),
                            "image": image, "spent": max(spent, 1.0), "success": len(succ) / len(eps),
                            "moves": float(np.mean(succ)) if succ else float("nan"), "seeds": len(cells)})
     return points
@@ -93,7 +95,8 @@ def _summary(plt, grid: dict[str, Any], done: dict[tuple, dict], note: str):
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=2, frameon=False)
     fig.suptitle("random targets: each main row (hollow: from 64 px pictures).\nPlanners: the moves they simulate "
-                 f"and execute; learners: training env steps + the moves they execute{note}", fontsize=9)
+                 f"and execute; learners: training env steps + the moves they execute (and simulate, acting by rollouts){note}",
+                 fontsize=9)
     fig.subplots_adjust(bottom=0.32, top=0.9, wspace=0.25)
     return fig
 

@@ -40,6 +40,13 @@ def method_label(grid: dict[str, Any], method: str) -> str:
     return grid["methods"].get(method, {}).get("label", method)
 
 
+def row_label(grid: dict[str, Any], method: str, variant: str) -> str:
+    """A row's name in a figure: the variant's own ``label`` or ``short`` where it has one (a second row of the same
+    method, e.g. "PPO + policy rollouts"), else its method's label."""
+    v = grid["methods"].get(method, {}).get("variants", {}).get(variant, {})
+    return v.get("label") or v.get("short") or method_label(grid, method)
+
+
 def main_rows(grid: dict[str, Any], image: bool = False) -> list[tuple[str, str]]:
     """The (method, variant) rows of the main grid (``image``: those from pictures)."""
     return [tuple(r.split("/", 1)) for r in (grid.get("main") or {}).get("image_rows" if image else "rows", [])]
