@@ -387,3 +387,10 @@ def test_a_learner_is_charged_the_simulation_it_acts_and_trains_with():
     points = {p["label"]: p["spent"] for p in _summary_points(compare.load_grid(), {
         ("ppo", "tuned", "random", 0): alone, ("ppo", "fewest_moves", "random", 0): rollouts})}
     assert points == {"PPO": 1000 + 2 * 10, "PPO + policy rollouts": 1000 + 2 * 10 * (1 + 150)}
+
+
+def test_paired_interval_is_clipped_to_what_a_success_difference_can_be():
+    from benchmarks.compare.summary import _ci
+    assert _ci([-1.0] * 19 + [0.0], 100, 0, bounds=(-1.0, 1.0)) == "-95 [-100, -85]"   # unclipped: -105
+    assert _ci([-1.0] * 19 + [0.0], 100, 0) == "-95 [-105, -85]"
+    assert _ci([7.0]) == "+7.0 (no interval)"

@@ -176,12 +176,15 @@ def pairs(a: dict[tuple, dict], b: dict[tuple, dict]) -> tuple[list[tuple[dict, 
     return out, unverified, mismatched
 
 
-def _ci(values: list[float], scale: float = 1.0, nd: int = 1) -> str:
+def _ci(values: list[float], scale: float = 1.0, nd: int = 1, bounds: tuple[float, float] | None = None) -> str:
+    """Mean [95 % t-interval], the interval clipped to ``bounds`` (the values' possible range) when given."""
     if not values:
         return "—"
     m, lo, hi = t_interval(values)
+    if bounds is not None and not math.isnan(lo):
+        lo, hi = max(lo, bounds[0]), min(hi, bounds[1])
     if math.isnan(lo):
-        return f"{m * scale:+.{nd}f} (n=1)"
+        return f"{m * scale:+.{nd}f} (no interval)"         # one value; its count is in another column
     return f"{m * scale:+.{nd}f} [{lo * scale:+.{nd}f}, {hi * scale:+.{nd}f}]"
 
 
@@ -196,8 +199,9 @@ def paired_section(grid: dict[str, Any], done: dict[tuple, dict], reference: tup
              f"Each row minus {method_label(grid, reference[0])} on the same episodes (same seed, same episode index: "
              "the same start shape and target, checked from each episode's start error and target). **Δ success**: "
              "percentage points, over all paired episodes; **Δ moves**: over the episodes both solved (negative: "
-             "fewer moves than CEM). Brackets: 95 % paired t-interval over episode pairs. **pairs**: paired episodes "
-             "(unverifiable: recorded before episodes kept their start error; mismatched ones are left out).", "",
+             "fewer moves than CEM). Brackets: 95 % paired t-interval over episode pairs (Δ success clipped to "
+             "±100), none for one pair. **pairs**: paired episodes (unverifiable: recorded before episodes kept their "
+             "start error; mismatched ones are left out).", "",
              "| method | variant | task | Δ success [pp] | Δ moves (both solved) | pairs |",
              "|---|---|---|---|---|---|"]
     for image in (False, True):
@@ -219,7 +223,7 @@ def paired_section(grid: dict[str, Any], done: dict[tuple, dict], reference: tup
                 dm = [x["steps"] - y["steps"] for x, y in pr if x["success"] and y["success"]]
                 note = f"{len(pr)}" + (f" ({unverified} unverifiable)" if unverified else "") + \
                     (f" ({mismatched} mismatched, left out)" if mismatched else "")
-                lines.append("| " + " | ".join([method_label(grid, method), variant, task, _ci(ds, 100, 0),
+                lines.append("| " + " | ".join([method_label(grid, method), variant, task, _ci(ds, 100, 0, bounds=(-1.0, 1.0)),
                                                 _ci([float(x) for x in dm]) + f" (n={len(dm)})", note]) + " |")
     return lines + [""]
 
