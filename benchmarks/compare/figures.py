@@ -219,7 +219,8 @@ def _pyplot():
 
 def _save(plt, fig, path: Path, dpi: int = 60) -> Path:
     if not fig.legends:                                        # a figure legend has its place already
-        fig.tight_layout()
+        title = fig.get_suptitle() if hasattr(fig, "get_suptitle") else ""
+        fig.tight_layout(rect=(0, 0, 1, 1 - 0.3 / fig.get_figheight()) if title else None)   # the title's band kept
     with replacing(path, suffix=path.suffix) as tmp:          # a reader never sees half a picture
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or None, metadata={"Software": None})
     plt.close(fig)
