@@ -279,7 +279,7 @@ def cpu_hours(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
         by.setdefault(method, []).append(float(r.get("wall_s", 0.0)))
     if not by:
         return []
-    parts = [f"{method_label(grid, m)} {sum(w) / 3600:.1f} ({len(w)} cells)" for m, w in
+    parts = [f"{method_label(grid, m)} {sum(w) / 3600:.1f} ({len(w)} cell{'s' if len(w) != 1 else ''})" for m, w in
              sorted(by.items(), key=lambda kv: list(grid["methods"]).index(kv[0]) if kv[0] in grid["methods"] else 99)]
     total = sum(sum(w) for w in by.values()) / 3600
     return [f"**CPU-hours of the finished cells** (each cell one process on one core, so its wall time; {total:.1f} "
