@@ -70,7 +70,7 @@ class ImageDecoder(nn.Module):
         lead = x.shape[:-1]
         y = self.fc(x.reshape(-1, x.shape[-1])).view(-1, self.c0, self.s0, self.s0)
         # channels-last: on a CPU the transposed convs then take oneDNN's kernels instead of the slow reference
-        # ones (the image update ~1.4x faster, benchmarks/planet_model.py --time-update), and the final permute to
+        # ones (the image update ~1.5x faster, benchmarks/planet_model.py --update-time), and the final permute to
         # (B, H, W, C) is free
         y = self.deconv(y.contiguous(memory_format=torch.channels_last))
         if y.shape[-1] != self.size:

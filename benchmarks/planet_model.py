@@ -42,7 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plan-time", action="store_true",
                     help="only time the latent planner: one planned move of --envs ropes (untrained model)")
     ap.add_argument("--update-time", action="store_true",
-                    help="only time model updates (the config's batch of chunks) on --moves random moves of --envs ropes")
+                    help="only time model updates (the config's batch of chunks) on --moves random moves of "
+                         "--envs ropes")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     bad = [item for item in args.set if "=" not in item]

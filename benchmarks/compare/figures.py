@@ -95,8 +95,8 @@ def _summary(plt, grid: dict[str, Any], done: dict[tuple, dict], note: str):
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=2, frameon=False)
     fig.suptitle("random targets: each main row (hollow: from 64 px pictures).\nPlanners: the moves they simulate "
-                 f"and execute; learners: training env steps + the moves they execute (and simulate, acting by rollouts){note}",
-                 fontsize=9)
+                 "and execute; learners: training env steps + the moves they execute (and simulate, acting by "
+                 f"rollouts){note}", fontsize=9)
     fig.subplots_adjust(bottom=0.32, top=0.9, wspace=0.25)
     return fig
 

@@ -223,7 +223,8 @@ def paired_section(grid: dict[str, Any], done: dict[tuple, dict], reference: tup
                 dm = [x["steps"] - y["steps"] for x, y in pr if x["success"] and y["success"]]
                 note = f"{len(pr)}" + (f" ({unverified} unverifiable)" if unverified else "") + \
                     (f" ({mismatched} mismatched, left out)" if mismatched else "")
-                lines.append("| " + " | ".join([method_label(grid, method), variant, task, _ci(ds, 100, 0, bounds=(-1.0, 1.0)),
+                success = _ci(ds, 100, 0, bounds=(-1.0, 1.0))
+                lines.append("| " + " | ".join([method_label(grid, method), variant, task, success,
                                                 _ci([float(x) for x in dm]) + f" (n={len(dm)})", note]) + " |")
     return lines + [""]
 
@@ -258,7 +259,8 @@ def missing_section(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
                 minutes, measured = cell_minutes(grid, done, method, variant)
                 cost = n * minutes / 60
                 total += 0.0 if math.isnan(cost) else cost
-                per_cell = "unknown" if math.isnan(minutes) else f"{minutes:.0f} ({'measured' if measured else 'estimate'})"
+                per_cell = ("unknown" if math.isnan(minutes)
+                            else f"{minutes:.0f} ({'measured' if measured else 'estimate'})")
                 rows.append(f"| {method}/{variant} | {n} | {'; '.join(parts)} | {per_cell} | "
                             + ("unknown" if math.isnan(cost) else f"{cost:.1f}") + " |")
     if not rows:
