@@ -25,12 +25,14 @@ EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name")
 # ====================================================================== evaluation
 @torch.no_grad()
 def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | BatchedShapeControl, n_episodes: int,
-             deterministic: bool = True, seed: int = 10_000) -> dict[str, Any]:
+             deterministic: bool = True, seed: int = 10_000,
+             check_stop: Callable[[], None] | None = None) -> dict[str, Any]:
     """Run ``n_episodes`` full episodes (in waves of env.num_envs, wave w reset with seed + w * num_envs: episode i
     starts from one rope's ``reset(seed=seed + i)``, as a planner's episode i of ``--seed seed``).
 
     ``policy(obs, deterministic) -> (B, A) actions``. Returns success_rate, mean_reward, mean_length,
     mean_final_error, episodes [{success, steps, final_error, return, target_name}], final ropes and targets.
+    ``check_stop()``: called before every move (it raises to stop the evaluation, e.g. on a signal).
     """
     env = env if isinstance(env, TrainEnv) else TrainEnv(env)
     b = env.num_envs
@@ -49,6 +51,8 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
         steps = torch.zeros(b, dtype=torch.int64)
         final_pos = env.core.get_state(generators=False).pos
         while bool(active.any()):
+            if check_stop is not None:
+                check_stop()
             actions = policy(obs, deterministic)
             obs, reward, term, trunc, info = env.core.step(actions.to(env.core.device), mask=active)
             obs = env.to_learner(obs)
@@ -99,13 +103,15 @@ def heldout_envs(task: TaskOptions, run: RunOptions, params: CableParams) -> dic
 
 
 def evaluate_heldout(policy: Callable[[Any, bool], torch.Tensor] | None, envs: dict[str, tuple[Any, TrainEnv]],
-                     run: RunOptions, policy_for: Callable[[TrainEnv], Callable] | None = None) -> dict[str, Any]:
+                     run: RunOptions, policy_for: Callable[[TrainEnv], Callable] | None = None,
+                     check_stop: Callable[[], None] | None = None) -> dict[str, Any]:
     """``evaluate`` on every held-out target (as many episodes, from the same start seeds, as the main evaluation):
     label -> {target, success_rate, mean_final_error, episodes}. ``policy_for(env)``: a policy bound to that env
-    (PlaNet's planners keep per-rope state), instead of ``policy``."""
+    (PlaNet's planners keep per-rope state), instead of ``policy``; ``check_stop`` as for ``evaluate``."""
     out = {}
     for label, (spec, env) in envs.items():
-        r = evaluate(policy if policy_for is None else policy_for(env), env, run.eval_episodes, seed=run.eval_seed)
+        r = evaluate(policy if policy_for is None else policy_for(env), env, run.eval_episodes, seed=run.eval_seed,
+                     check_stop=check_stop)
         out[label] = {"target": str(spec), "success_rate": r["success_rate"],
                       "mean_final_error": r["mean_final_error"], "shapes": first_shapes(r),
                       "episodes": episode_records(r["episodes"])}

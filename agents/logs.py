@@ -17,19 +17,27 @@ class Logger:
     """CSV files ``<out>/<group>.csv`` (always) and TensorBoard scalars ``<group>/<key>`` when it is installed.
 
     ``resume_step``: rows logged after that step (by a run killed after its last checkpoint) are dropped, so the
-    resumed run rewrites them and the CSVs read as one uninterrupted run.
+    resumed run rewrites them and the CSVs read as one uninterrupted run. ``resume_rows`` (``rows`` as the checkpoint
+    saved it), when given, decides instead: each file keeps its first rows up to that count, which is exact also for
+    a checkpoint saved within a step (between two updates, before an evaluation). ``rows``: group -> rows written.
     """
 
-    def __init__(self, out: Path, resume_step: int | None = None, tensorboard: bool = True):
+    def __init__(self, out: Path, resume_step: int | None = None, tensorboard: bool = True,
+                 resume_rows: dict[str, int] | None = None):
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.fields: dict[str, list[str]] = {}
+        self.rows: dict[str, int] = {}
         for path in self.out.glob("*.csv"):
             rows = read_csv(path)
             if resume_step is None:
                 path.unlink()
                 continue
-            keep = [r for r in rows if float(r["step"]) <= resume_step]
+            if resume_rows is not None:
+                keep = rows[:resume_rows.get(path.stem, 0)]
+            else:
+                keep = [r for r in rows if float(r["step"]) <= resume_step]
+            self.rows[path.stem] = len(keep)
             text = io.StringIO()
             if rows:
                 w = csv.DictWriter(text, fieldnames=list(rows[0].keys()))
@@ -56,6 +64,7 @@ class Logger:
             if new:
                 w.writeheader()
             w.writerow(row)
+        self.rows[group] = self.rows.get(group, 0) + 1
         if self.tb is not None:
             for k, v in values.items():
                 self.tb.add_scalar(f"{group}/{k}", float(v), step)

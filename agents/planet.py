@@ -302,7 +302,39 @@ def train(cfg: PlaNetConfig, out: Path | str, resume: bool = False, progress: bo
         return r
 
     chunks = cfg.batch_size * (cfg.members if cfg.model == "ensemble" else 1)   # the ensemble: a minibatch per member
-    while run.step < cfg.run.total_steps:
+    # a phase's updates still to do: a stop between two of them (100 model updates from pictures take minutes) keeps
+    # the rest in the checkpoint, and --resume does them first, as the uninterrupted run did
+    pending = ck.get("pending_updates", 0) if ck else 0
+
+    def parts_now() -> dict[str, Any]:
+        return {**parts, "n_updates": n_updates, "last_train": last_train, "pending_updates": pending}
+
+    while True:
+        # ---- learn: the phase started by the last step
+        while pending:
+            run.stop_if_requested(parts_now)
+            o, a, r, m = sample_sequences(rb, chunks, cfg.chunk_length)
+            L = model.loss(o, a, r, m)
+            opt.zero_grad()
+            L["loss"].backward()
+            gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            opt.step()
+            n_updates += 1
+            pending -= 1
+            if n_updates % cfg.run.log_every == 0:
+                scalars = {k: v.item() for k, v in L.items() if torch.is_tensor(v) and v.numel() == 1}
+                logger.log("train", run.step, {**scalars, "grad_norm": float(gnorm), "n_updates": n_updates})
+                run.log_rollout()
+                shown = ("err_cm",) if cfg.model == "ensemble" else ("recon", "kl")
+                bar.set_postfix(fmt_postfix(run.last_success, **{k: L[k].item() for k in shown}))
+
+        # ---- evaluate (it plans every move of every episode: checkpointed first, so that a stop loses none of the
+        # training before it), checkpoint
+        run.evaluate_if_due(evaluate_all, save_first=parts_now)
+        run.checkpoint_if_due(parts_now)
+        if run.step >= cfg.run.total_steps:
+            break
+
         # ---- act: random seed episodes, then the planner with exploration noise
         with torch.no_grad():
             if run.step < seed_steps:
@@ -315,29 +347,9 @@ def train(cfg: PlaNetConfig, out: Path | str, resume: bool = False, progress: bo
         rb.add(obs, action, reward, term, trunc, final_obs=final_obs)
         run.count(info, term, trunc)
         obs = next_obs
-
-        # ---- learn
         if (run.step >= seed_steps and run.step - last_train >= cfg.train_every
                 and len(rb.chunk_starts(cfg.chunk_length))):
-            last_train = run.step
-            for _ in range(cfg.updates_per_train):
-                o, a, r, m = sample_sequences(rb, chunks, cfg.chunk_length)
-                L = model.loss(o, a, r, m)
-                opt.zero_grad()
-                L["loss"].backward()
-                gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
-                n_updates += 1
-                if n_updates % cfg.run.log_every == 0:
-                    scalars = {k: v.item() for k, v in L.items() if torch.is_tensor(v) and v.numel() == 1}
-                    logger.log("train", run.step, {**scalars, "grad_norm": float(gnorm), "n_updates": n_updates})
-                    run.log_rollout()
-                    shown = ("err_cm",) if cfg.model == "ensemble" else ("recon", "kl")
-                    bar.set_postfix(fmt_postfix(run.last_success, **{k: L[k].item() for k in shown}))
-
-        # ---- evaluate, checkpoint
-        run.evaluate_if_due(evaluate_all)
-        run.checkpoint_if_due(lambda: {**parts, "n_updates": n_updates, "last_train": last_train})
+            last_train, pending = run.step, cfg.updates_per_train
 
     extra = {"model": cfg.model, "n_updates": n_updates}
     if getattr(actor, "planned", 0):          # the ensemble's planner times itself (training collection, all ropes)

@@ -88,6 +88,7 @@ class Run:
         self.last_success: float | None = None
         self.result: dict[str, Any] | None = None
         self.progress = progress
+        self._stoppable_eval = False
         self.logger: Logger | None = None
         self.bar: tqdm | None = None
         self.t0 = time.perf_counter()
@@ -109,7 +110,8 @@ class Run:
             self.last_success, self.wall_before = ck["last_success"], ck["wall_s"]
             self.result = ck.get("result")           # the last evaluation (reused when nothing is left to train)
             set_rng_state(ck["rng"])
-        self.logger = Logger(self.out, resume_step=self.step if self.resume else None)
+        self.logger = Logger(self.out, resume_step=self.step if self.resume else None,
+                             resume_rows=ck.get("log_rows") if ck else None)
         total = self.cfg.run.total_steps
         self.bar = tqdm(total=total, initial=min(self.step, total), desc=self.algo, disable=not self.progress,
                         dynamic_ncols=True, file=sys.stderr)
@@ -133,31 +135,74 @@ class Run:
 
     def evaluate(self, policy: Callable[[Any, bool], torch.Tensor]) -> dict[str, Any]:
         opts = self.cfg.run
-        return evaluate(policy, self.eval_env, opts.eval_episodes, seed=opts.eval_seed)
+        return evaluate(policy, self.eval_env, opts.eval_episodes, seed=opts.eval_seed,
+                        check_stop=self._stop_evaluation if self._stoppable_eval else None)
 
-    def evaluate_if_due(self, evaluate_fn: Callable[[], dict[str, Any]]) -> None:
-        """Every eval_every env steps and at the end of the budget: ``evaluate_fn()`` logged as an eval row."""
+    def evaluate_if_due(self, evaluate_fn: Callable[[], dict[str, Any]],
+                        save_first: Callable[[], dict[str, Any]] | None = None) -> None:
+        """Every eval_every env steps and at the end of the budget (once): ``evaluate_fn()`` logged as an eval row.
+        ``save_first`` (the parts, as for ``checkpoint_if_due``): a checkpoint just before, for an evaluation that
+        takes minutes (one that plans every move); ``run.evaluate`` then stops at a move on a signal, and --resume
+        evaluates again from that checkpoint, as the uninterrupted run did. It does not move the checkpoint
+        schedule."""
         opts = self.cfg.run
-        if self.step - self.last_eval >= opts.eval_every or self.step >= opts.total_steps:
+        if (self.step - self.last_eval >= opts.eval_every
+                or (self.step >= opts.total_steps and self.last_eval < self.step)):
+            if save_first is not None:
+                self.save(save_first())
+            self._stoppable_eval = save_first is not None
+            try:
+                self.result = evaluate_fn()
+            finally:
+                self._stoppable_eval = False
             self.last_eval = self.step
-            self.result = evaluate_fn()
             self.last_success = self.result["success_rate"]
             self.logger.log("eval", self.step, eval_row(self.result))
             self.bar.set_postfix(fmt_postfix(self.last_success))
 
     def checkpoint_if_due(self, parts_fn: Callable[[], dict[str, Any]]) -> None:
-        """Every checkpoint_every env steps and at the end of the budget: the learner's parts and the run's state in
-        one atomic file. Asked to stop (a signal, see ``learner``): a checkpoint now, then ``Interrupted``."""
+        """Every checkpoint_every env steps and at the end of the budget (once): the learner's parts and the run's
+        state in one atomic file. Asked to stop (a signal, see ``learner``): a checkpoint now, then ``Interrupted``."""
         opts = self.cfg.run
-        stop = _stop[-1].signal if _stop else None
-        if stop or self.step - self.last_ckpt >= opts.checkpoint_every or self.step >= opts.total_steps:
+        due = (self.step - self.last_ckpt >= opts.checkpoint_every
+               or (self.step >= opts.total_steps and self.last_ckpt < self.step))
+        if due:
             self.last_ckpt = self.step
             self.save(parts_fn())
+        elif self.stop_requested():
+            self.save(parts_fn())
+        self._interrupt_if_stopped("")
+
+    def stop_if_requested(self, parts_fn: Callable[[], dict[str, Any]]) -> None:
+        """Within a step (e.g. between a phase's updates): asked to stop, a checkpoint now (``parts_fn()`` must hold
+        whatever the learner needs to finish the step on --resume), then ``Interrupted``. Does not move the
+        checkpoint schedule."""
+        if self.stop_requested():
+            self.save(parts_fn())
+            self._interrupt_if_stopped(", within the step", "checkpoint saved (--resume finishes the step)")
+
+    def stop_requested(self) -> str | None:
+        """The signal's name once one asked the run to stop, else None."""
+        return _stop[-1].signal if _stop else None
+
+    def _interrupt_if_stopped(self, where: str, saved: str = "checkpoint saved") -> None:
+        stop = self.stop_requested()
         if stop:
             self.bar.close()
             self.logger.close()
-            raise Interrupted(stop, self.step, f"{self.algo}: stopped by {stop} at env step {self.step}; checkpoint "
-                                               f"saved: continue with --out {self.out} --resume")
+            raise Interrupted(stop, self.step, f"{self.algo}: stopped by {stop} at env step {self.step}{where}; "
+                                               f"{saved}: continue with --out {self.out} --resume")
+
+    def _stop_heldout(self) -> None:
+        stop = self.stop_requested()
+        if stop:
+            raise Interrupted(stop, self.step, f"{self.algo}: stopped by {stop} at env step {self.step}, in the "
+                                               f"held-out evaluation after training; the last checkpoint holds the "
+                                               f"trained run: continue with --out {self.out} --resume (it evaluates "
+                                               "again and writes results.json)")
+
+    def _stop_evaluation(self) -> None:
+        self._interrupt_if_stopped(", in an evaluation", "the checkpoint saved before it evaluates again")
 
     def save(self, parts: dict[str, Any]) -> None:
         state = {k: v.state_dict() if hasattr(v, "state_dict") else v for k, v in parts.items()}
@@ -165,6 +210,7 @@ class Run:
             "algo": self.algo, "config": to_dict(self.cfg), **state, "env": self.env.state_dict(),
             "episode_stats": list(self.stats.buf), "step": self.step, "last_eval": self.last_eval,
             "last_ckpt": self.last_ckpt, "last_success": self.last_success, "result": self.result,
+            "log_rows": dict(self.logger.rows),
             "wall_s": self.wall_s(), "rng": rng_state()})
 
     def act_by_rollouts(self, policy: Callable[[Any, bool], torch.Tensor], extra: dict[str, Any] | None
@@ -191,7 +237,9 @@ class Run:
                before_heldout: Callable[[], None] | None = None) -> dict[str, Any]:
         """Close the bar and logs, evaluate on the held-out targets (not counted in wall_s) and write results.json
         and its picture. A run resumed at its end trains nothing and reuses its saved last evaluation, so it adds no
-        log rows; ``evaluate_fn`` (default: ``evaluate(policy)``) only serves a checkpoint that holds none."""
+        log rows; ``evaluate_fn`` (default: ``evaluate(policy)``) only serves a checkpoint that holds none. A signal
+        stops the held-out evaluation at a move (``Interrupted``): the last checkpoint, saved at the end of the budget,
+        holds the trained run, and --resume evaluates it again."""
         self.bar.close()
         if self.result is None:
             self.result = evaluate_fn() if evaluate_fn is not None else self.evaluate(policy)
@@ -201,6 +249,7 @@ class Run:
             before_heldout()
         if self.cfg.run.rollout_candidates and policy is not None:
             policy, extra = self.act_by_rollouts(policy, extra)
-        held = evaluate_heldout(policy, self.heldout, self.cfg.run, policy_for=policy_for)
+        held = evaluate_heldout(policy, self.heldout, self.cfg.run, policy_for=policy_for,
+                                check_stop=self._stop_heldout)
         return write_results(self.out, self.algo, self.cfg.task, self.cfg.run.seed, self.result, self.step, wall,
                              heldout=held, extra=extra)

@@ -255,6 +255,55 @@ def test_resume_equals_uninterrupted(tmp_path):
     assert len([r for r in read_csv(b / "train.csv") if float(r["step"]) > 64]) > 0
 
 
+def stop_when(calls_of, obj, name, after, when=lambda *a, **k: True):
+    """Wrap ``obj.name`` so that its ``after``-th call among those where ``when(*args)`` holds asks the running
+    learner to stop, as the first SIGTERM does (agents/run.py's stop request)."""
+    from agents import run as run_mod
+    inner = getattr(obj, name)
+
+    def wrapped(*args, **kw):
+        if when(*args, **kw):
+            calls_of.append(1)
+            if len(calls_of) == after:
+                run_mod._stop[-1].signal = "SIGTERM"
+        return inner(*args, **kw)
+    return wrapped
+
+
+@pytest.mark.parametrize("where", ["between-updates", "in-evaluation", "in-heldout"])
+def test_a_stop_within_a_step_resumes_as_the_uninterrupted_run(where, tmp_path, monkeypatch, capsys):
+    """A stop between two of a phase's updates (a checkpoint with the updates left), during an evaluation (the
+    checkpoint saved just before it) or during the held-out evaluation after training (the end's checkpoint): each
+    stops at once with a checkpoint, and --resume writes the same logs and results as one run."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    extra = ["--eval-every", "64", "--set", "eval_targets=[diagonal]"]
+    assert planet.main(argv(a, 128, *extra)) == 0
+    calls = []
+    if where == "between-updates":      # asked in the 2nd phase's 2nd update (updates_per_train=4): stops after it
+        monkeypatch.setattr(planet, "sample_sequences", stop_when(calls, planet, "sample_sequences", 6))
+    else:                                # a planned move of the 2nd evaluation (step 128) or of the held-out one
+        eval_call = lambda self, obs, deterministic=True: deterministic
+        after = {"in-evaluation": 8 + 3, "in-heldout": 16 + 3}[where]   # 8 evaluation moves at most (max_steps)
+        monkeypatch.setattr(planet.LatentPlanner, "__call__",
+                            stop_when(calls, planet.LatentPlanner, "__call__", after, eval_call))
+    assert planet.main(argv(b, 128, *extra)) == 143                  # as a shell reports SIGTERM
+    monkeypatch.undo()
+    assert "stopped by SIGTERM at env step" in capsys.readouterr().err
+    ck = torch.load(b / CHECKPOINT, weights_only=False)
+    assert not (b / "results.json").exists()
+    if where == "between-updates":
+        assert ck["pending_updates"] == 2 and ck["step"] == 64
+    elif where == "in-evaluation":
+        assert ck["step"] == 128 and ck["last_eval"] == 64
+    else:
+        assert ck["step"] == 128 and ck["last_eval"] == 128
+    assert planet.main(["--out", str(b), "--resume", "--no-progress"]) == 0
+    for name in ("train.csv", "eval.csv", "openloop.csv", "rollout.csv"):
+        assert (a / name).read_text() == (b / name).read_text(), name
+    ra, rb = json.loads((a / "results.json").read_text()), json.loads((b / "results.json").read_text())
+    assert ra["episodes"] == rb["episodes"] and ra["heldout"] == rb["heldout"] and rb["env_steps"] == 128
+
+
 def test_world_model_benchmark_runs(capsys):
     from benchmarks import planet_model
     assert planet_model.main(["--preset", "rssm", "--updates", "2", "--moves", "12", "--envs", "3", "--set", TINY, "--set", "batch_size=4",

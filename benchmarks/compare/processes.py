@@ -11,7 +11,9 @@ import time
 
 from diffdlo.signals import Terminated, stop_on_signals  # noqa: F401 - Terminated: cli's exit code
 
-GRACE_S = 5.0          # how long a stopped cell's group gets to exit on SIGTERM before SIGKILL
+# how long a stopped cell's group gets to exit on SIGTERM before SIGKILL: a learner finishes its update (2.4 s for
+# PlaNet's RSSM from pictures) and writes its checkpoint, replay buffer included (about 1 GB of pictures at 100k steps)
+GRACE_S = 60.0
 
 _lock = threading.Lock()
 _running: set[subprocess.Popen] = set()
