@@ -55,6 +55,25 @@ def test_a_learner_stops_at_a_step_with_a_checkpoint_and_resumes_exactly(sig, co
     assert json.loads((out / "results.json").read_text())["env_steps"] == step + 64
 
 
+def test_the_world_model_learner_stops_between_two_updates_of_a_phase(tmp_path):
+    """A SIGTERM inside a training phase (here 100,000 updates) stops PlaNet's RSSM after the update in progress, its
+    checkpoint keeping the updates left (the in-process test in tests/test_planet.py checks the exact resume)."""
+    out = tmp_path / "rssm"
+    proc = start_ignoring_sigint([sys.executable, "-m", "agents.planet", "--preset", "rssm", "--out", str(out),
+                                  "--total-steps", "10000", "--max-steps", "8", *TINY[:9], "--threads", "1",
+                                  "--set", "seed_episodes=2", "--set", "train_every=16",
+                                  "--set", "updates_per_train=100000", "--set", "log_every=1", "--set", "batch_size=4",
+                                  "--set", "chunk_length=4", "--set", "deter=8", "--set", "stoch=2",
+                                  "--set", "hidden=8", "--set", "embed=8"])
+    wait_for(out / "train.csv", proc)                       # the phase has begun (its first update logged)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 143 and "stopped by SIGTERM at env step" in err and "Traceback" not in err, err
+    import torch
+    ck = torch.load(out / "checkpoint.pt", weights_only=True)
+    assert 0 < ck["pending_updates"] < 100_000 and ck["n_updates"] + ck["pending_updates"] == 100_000
+
+
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_a_planner_stops_on_a_signal_though_started_with_sigint_ignored(sig, code, tmp_path):
     out = tmp_path / "cem"
