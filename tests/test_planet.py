@@ -270,14 +270,22 @@ def stop_when(calls_of, obj, name, after, when=lambda *a, **k: True):
     return wrapped
 
 
+STOP_RUN = ["--eval-every", "64", "--set", "eval_targets=[diagonal]"]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    a = tmp_path_factory.mktemp("uninterrupted")
+    assert planet.main(argv(a, 128, *STOP_RUN)) == 0
+    return a
+
+
 @pytest.mark.parametrize("where", ["between-updates", "in-evaluation", "in-heldout"])
-def test_a_stop_within_a_step_resumes_as_the_uninterrupted_run(where, tmp_path, monkeypatch, capsys):
+def test_a_stop_within_a_step_resumes_as_the_uninterrupted_run(where, uninterrupted, tmp_path, monkeypatch, capsys):
     """A stop between two of a phase's updates (a checkpoint with the updates left), during an evaluation (the
     checkpoint saved just before it) or during the held-out evaluation after training (the end's checkpoint): each
     stops at once with a checkpoint, and --resume writes the same logs and results as one run."""
-    a, b = tmp_path / "a", tmp_path / "b"
-    extra = ["--eval-every", "64", "--set", "eval_targets=[diagonal]"]
-    assert planet.main(argv(a, 128, *extra)) == 0
+    a, b, extra = uninterrupted, tmp_path / "b", STOP_RUN
     calls = []
     if where == "between-updates":      # asked in the 2nd phase's 2nd update (updates_per_train=4): stops after it
         monkeypatch.setattr(planet, "sample_sequences", stop_when(calls, planet, "sample_sequences", 6))
