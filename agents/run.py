@@ -168,8 +168,7 @@ class Run:
                or (self.step >= opts.total_steps and self.last_ckpt < self.step))
         if due:
             self.last_ckpt = self.step
-            self.save(parts_fn())
-        elif self.stop_requested():
+        if due or self.stop_requested():
             self.save(parts_fn())
         self._interrupt_if_stopped("")
 
@@ -194,12 +193,8 @@ class Run:
                                                f"{saved}: continue with --out {self.out} --resume")
 
     def _stop_heldout(self) -> None:
-        stop = self.stop_requested()
-        if stop:
-            raise Interrupted(stop, self.step, f"{self.algo}: stopped by {stop} at env step {self.step}, in the "
-                                               f"held-out evaluation after training; the last checkpoint holds the "
-                                               f"trained run: continue with --out {self.out} --resume (it evaluates "
-                                               "again and writes results.json)")
+        self._interrupt_if_stopped(", in the held-out evaluation after training", "the last checkpoint holds the "
+                                   "trained run (--resume evaluates again and writes results.json)")
 
     def _stop_evaluation(self) -> None:
         self._interrupt_if_stopped(", in an evaluation", "the checkpoint saved before it evaluates again")

@@ -12,7 +12,8 @@ import time
 from diffdlo.signals import Terminated, stop_on_signals  # noqa: F401 - Terminated: cli's exit code
 
 # how long a stopped cell's group gets to exit on SIGTERM before SIGKILL: a learner finishes its update (2.4 s for
-# PlaNet's RSSM from pictures) and writes its checkpoint, replay buffer included (about 1 GB of pictures at 100k steps)
+# PlaNet's RSSM from pictures) and writes its checkpoint, replay buffer included (0.5 GB of pictures in the grid's
+# 20k-step planet/image cell)
 GRACE_S = 60.0
 
 _lock = threading.Lock()
