@@ -1,12 +1,13 @@
 #!/bin/bash
 # The comparison's grid (benchmarks/compare.yaml): the main rows, cheapest first, two cells at once, niced; then the
-# appendix and the secondary rows. Finished cells are skipped and learners resume, so rerun it to continue:
+# appendix and the secondary rows. Finished cells are skipped (also those only recorded in docs/results/cells.jsonl,
+# when the run folders stayed on another machine: --skip-recorded) and learners resume, so rerun it to continue:
 #   nohup setsid benchmarks/main_grid.sh > runs/main_grid.log 2>&1 &
 # then `python -m benchmarks.compare --collect --out runs/compare` adds the finished cells to docs/results/cells.jsonl
 # and rebuilds docs/RESULTS.md and the README's summary.
 cd "$(dirname "$0")/.." || exit 1
 PY=${PYTHON:-.venv/bin/python}
-C="$PY -m benchmarks.compare --out runs/compare --jobs ${JOBS:-2} --no-report --no-progress"
+C="$PY -m benchmarks.compare --out runs/compare --jobs ${JOBS:-2} --no-report --no-progress --skip-recorded"
 MAIN="random random_curve arc s_curve hook wave"
 nice -n 10 $C --methods greedy cem gradient --variants default --targets $MAIN
 nice -n 10 $C --methods apg ppo --variants tuned

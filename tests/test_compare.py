@@ -278,6 +278,35 @@ def test_payback_only_for_learners_about_as_successful_as_cem():
 # ---------------------------------------------------------------- the results as committed data
 
 
+def test_skip_recorded_continues_a_grid_whose_run_folders_are_gone(quick, tmp_path, capsys):
+    """A new machine has the committed records but no run folders: --skip-recorded runs only the cells without a
+    record made with the grid's settings now; without the flag every cell runs again (a reproduction)."""
+    from benchmarks.compare.cli import _finished
+    root, _ = quick
+    cells = compare.build_cells(compare.load_grid(quick=True), root / "cells", ["greedy", "cem", "sac"], seeds=[0])
+    results = tmp_path / "cells.jsonl"
+    assert compare.collect([(c, *_finished(c)) for c in cells], results) == (4, 4)
+    fresh = tmp_path / "new_machine"
+    argv = [*ARGS, "--out", str(fresh), "--results", str(results), "--no-report"]
+    assert compare.main([*argv, "--list"]) == 0
+    assert capsys.readouterr().out.count("todo    ") == 4                  # without the flag: all four again
+    assert compare.main([*argv, "--skip-recorded"]) == 0
+    out, err = capsys.readouterr()
+    assert "4 cell(s) recorded in" in err and "cells: 0 run, 0 already finished (skipped), 0 failed" in out
+    assert not list(fresh.rglob("results.json"))
+    # a record made with other settings than the grid's is no result for the cell now: that cell runs
+    recs = compare.read_records(results)
+    greedy = next(r for r in recs if r["method"] == "greedy" and r["target"] == "diagonal")
+    greedy["argv"] = [*greedy["argv"], "--max-steps", "99"]
+    compare.write_records(recs, results)
+    assert compare.main([*argv, "--skip-recorded"]) == 0
+    assert "cells: 1 run, 0 already finished" in capsys.readouterr().out
+    assert [p.parent.parent.name for p in fresh.rglob("results.json")] == ["diagonal"]
+    with pytest.raises(SystemExit) as exit_:                                 # flags that do not go together
+        compare.main([*argv, "--skip-recorded", "--report-only"])
+    assert exit_.value.code == 2
+
+
 def test_records_rebuild_the_report_the_run_folders_give(quick, tmp_path):
     """--collect turns the finished cells into records; the report from the records equals the report from the
     folders (but for the command that rebuilds it), and collecting again writes the same bytes."""

@@ -63,6 +63,10 @@ def parser(description: str) -> OneLineParser:
     ap.add_argument("--rerun-changed", action="store_true",
                     help="rerun finished cells whose settings in the grid changed since they ran (their old folder "
                          "is moved to <out>/superseded/); without it such cells stop the run")
+    ap.add_argument("--skip-recorded", action="store_true",
+                    help="also skip cells that have a record in the results file (--results) made with the grid's "
+                         "settings now, though their run folder is gone (a grid continued on a new machine from the "
+                         "committed docs/results/cells.jsonl); without it such cells run again, as a reproduction")
     ap.add_argument("--list", action="store_true", help="print the selected cells and their commands, run nothing")
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--learner-device", default=None, metavar="DEVICE",
@@ -118,6 +122,8 @@ def option_errors(args: argparse.Namespace) -> list[str]:
         errors.append("--ray-cpus: only with --ray local (a running cluster has its own CPUs)")
     if args.rerun_changed and (args.report_only or args.list or args.collect):
         errors.append("--rerun-changed: only when running cells (not with --report-only, --collect or --list)")
+    if args.skip_recorded and (args.report_only or args.collect):
+        errors.append("--skip-recorded: only when running or listing cells (not with --report-only or --collect)")
     if args.collect and (args.list or args.no_report):
         errors.append("--collect writes the results file and the report: not with --list or --no-report")
     if args.collect and args.out is None:

@@ -13,7 +13,7 @@ from .arguments import filter_errors, option_errors, parser, select_rows
 from .grid import build_cells, command_line, is_done, load_grid
 from diffdlo.files import OutBusyError, out_lock
 from .processes import Terminated, signals_stop_compare
-from .records import RESULTS_FILE, collect, read_records
+from .records import RESULTS_FILE, collect, read_records, record_changes, record_key
 from .grid import ROOT
 from .report import readme_summary, update_readme, write_report
 from .runner import run_cells
@@ -62,6 +62,17 @@ def _run(args, cells, out: Path) -> int:
     return 1 if counts["failed"] else 0
 
 
+def _without_recorded(cells: list, results_file: Path) -> list:
+    """``cells`` less those with a record in ``results_file`` made with the grid's settings now (their folder may
+    be gone: the record is their result). A cell whose folder has results stays, as run_cells skips it anyway."""
+    records = {record_key(r): r for r in read_records(results_file)}
+    keep = [c for c in cells if is_done(c) or (rec := records.get(record_key(c))) is None or record_changes(rec, c)]
+    if len(keep) < len(cells):
+        _say(f"{len(cells) - len(keep)} cell(s) recorded in {results_file} with the grid's settings are skipped "
+             "(--skip-recorded)")
+    return keep
+
+
 def _finished(cell) -> tuple[dict, dict]:
     """A finished cell's results.json and cell.json (empty if it has none)."""
     import json
@@ -96,6 +107,11 @@ def main(argv: list[str] | None = None) -> int:
     if not cells:
         ap.error("no cell matches the filters")
     results_file = Path(args.results) if args.results else RESULTS_FILE
+    if args.skip_recorded:
+        try:
+            cells = _without_recorded(cells, results_file)
+        except (OSError, ValueError) as exc:
+            ap.error(f"--results {results_file}: {exc}")
     from_records = args.collect or (args.report_only and args.out is None and not args.quick)
     if from_records:
         try:
