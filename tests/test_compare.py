@@ -380,13 +380,19 @@ def test_summary_names_missing_cells_with_their_cost():
     table = "\n".join(summary_table(grid, done))
     cem_row = next(line for line in table.splitlines() if line.startswith("| CEM"))
     assert "| 100 % · 10.0 (3/5 seeds) | not run |" in cem_row and "| 3,010 | 3.0 s / episode |" in cem_row
+    planet_image = next(line for line in table.splitlines() if "| image |" in line and "RSSM" in line)
+    assert "| not run: too costly here |" in planet_image          # compare.yaml marks it too_costly_here
     missing = "\n".join(missing_section(grid, done))
     # 2 + 5 x 5 cells left, priced at the row's measured minute per cell
     assert "| cem/default | 27 | random (3 4); random_curve (0 1 2 3 4);" in missing
     assert " | 1 (measured) | 0.5 |" in missing.split("| cem/default |")[1].splitlines()[0]
     gradient = grid["methods"]["gradient"]["variants"]["default"]["cpu_min"]            # none finished: the estimate
     row = missing.split("| gradient/default |")[1].splitlines()[0]
-    assert f" | {gradient:.0f} (estimate) | {30 * gradient / 60:.1f} |" in row
+    assert f" | {gradient:.0f} (estimate) | {30 * gradient / 60:.1f} | queued: " in row
+    # a row the grid marks too costly for this machine says why, from compare.yaml
+    grid["methods"]["gradient"]["variants"]["default"]["too_costly_here"] = "needs 9 h per cell"
+    row = "\n".join(missing_section(grid, done)).split("| gradient/default |")[1].splitlines()[0]
+    assert row.endswith(" | needs 9 h per cell |")
 
 
 def test_a_cell_that_reads_another_cells_run_names_its_own_seed_and_target():

@@ -60,10 +60,11 @@ def _row_runs(grid, done, method, variant, task, trained_on) -> tuple[list[dict]
     return [[eps[k] for k in sorted(eps) if k[0] == s] for s in seeds], len(seeds)
 
 
-def _cell_text(runs: list[list[dict]], n_seeds: int, n_all: int) -> str:
-    """"100 % · 9.2" (success @1 cm over all episodes; mean moves of the successful ones), seeds if not all."""
+def _cell_text(runs: list[list[dict]], n_seeds: int, n_all: int, variant: dict | None = None) -> str:
+    """"100 % · 9.2" (success @1 cm over all episodes; mean moves of the successful ones), seeds if not all.
+    None run: "not run", or "too costly here" for a ``variant`` the grid marks so (`too_costly_here`)."""
     if not runs:
-        return "not run"
+        return "not run: too costly here" if (variant or {}).get("too_costly_here") else "not run"
     eps = [e for r in runs for e in r]
     succ = [e["steps"] for e in eps if e["success"]]
     moves = f"{np.mean(succ):.1f}" if succ else "—"
@@ -112,7 +113,7 @@ def summary_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
                     texts.append("")
                     continue
                 runs, n = _row_runs(grid, done, method, variant, task, source)
-                texts.append(_cell_text(runs, n, n_all))
+                texts.append(_cell_text(runs, n, n_all, grid["methods"][method]["variants"][variant]))
             train, per_ep, wall = _costs(grid, done, method, variant, ["random"])
             lines.append("| " + " | ".join([method_label(grid, method), variant, *texts, train, per_ep, wall])
                          + " |")
@@ -151,7 +152,7 @@ def readme_table(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
         if method in images and method not in pictured:       # a method's image row, beside its first main row
             pictured.add(method)
             runs, n = _row_runs(grid, done, method, images[method], "random", "random")
-            texts.append(_cell_text(runs, n, n_all))
+            texts.append(_cell_text(runs, n, n_all, spec["variants"][images[method]]))
         else:
             texts.append("")
         train, per_ep, _ = _costs(grid, done, method, variant, ["random"])
@@ -261,8 +262,9 @@ def missing_section(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
                 total += 0.0 if math.isnan(cost) else cost
                 per_cell = ("unknown" if math.isnan(minutes)
                             else f"{minutes:.0f} ({'measured' if measured else 'estimate'})")
+                why = v.get("too_costly_here") or "queued: `benchmarks/main_grid.sh` runs it"
                 rows.append(f"| {method}/{variant} | {n} | {'; '.join(parts)} | {per_cell} | "
-                            + ("unknown" if math.isnan(cost) else f"{cost:.1f}") + " |")
+                            + ("unknown" if math.isnan(cost) else f"{cost:.1f}") + f" | {why} |")
     if not rows:
         return ["**The main grid is complete**: every main row on every main task, "
                 f"{len(grid['seeds'])} seeds × {grid['episodes']} episodes.", ""]
@@ -271,7 +273,8 @@ def missing_section(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
             "process per core on the 2-core machine), or for a row with none at the grid's `cpu_min` estimate. A "
             "learner's held-out columns come with its `random` cells. A cell runs with `python -m benchmarks.compare "
             "--methods M --variants V --targets T --seeds S`.", "",
-            "| row | cells | task (seeds) | CPU-minutes per cell | CPU-hours |", "|---|---|---|---|---|", *rows, ""]
+            "| row | cells | task (seeds) | CPU-minutes per cell | CPU-hours | why not run |",
+            "|---|---|---|---|---|---|", *rows, ""]
 
 
 def cpu_hours(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
