@@ -227,6 +227,13 @@ def test_partial_report_names_the_cells_not_run(quick, tmp_path):
     assert f"3 of {n} cells finished" in md
     assert f"**Partial comparison: {n - 3} of {n} cells not run yet**" in md
     assert "ppo/points/random: 0 1 2 3 4" in md and "greedy/default/diagonal: 1 2 3 4;" in md
+    # the cells outside the main grid are counted and priced (the quick run finished two of them: the diagonal's)
+    main = full["main"]
+    rows = set(main["rows"]) | set(main.get("image_rows", []))
+    outside = [c for c in compare.build_cells(full, cells_dir)
+               if f"{c['method']}/{c['variant']}" not in rows or c["target"] not in main["targets"]]
+    assert re.search(rf"Of them, {len(outside) - 2} are outside the main grid \(the secondary rows and the named "
+                     r"lines\): ≈ \d+\.\d CPU-hours", md)
     budgets = " ".join(full["budgets"].split())                # the grid's own budget statement, reflowed
     assert "measure early learning" in budgets and f"**Budgets.** {budgets}" in md
 

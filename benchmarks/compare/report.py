@@ -16,11 +16,11 @@ from typing import Any
 from .costs import cost_section, row_cost
 from .figures import figure_names, make_cost_figures, make_figures
 from diffdlo.files import write_text_atomic
-from .grid import ROOT, build_cells, cell_dir
+from .grid import ROOT, build_cells, cell_dir, main_rows
 from .records import as_results, make_record, record_changes, record_key
 from .settings import changed_cells, describe_changes
 from .stats import row_stats
-from .summary import cpu_hours, missing_section, paired_section, readme_table, summary_table
+from .summary import cell_minutes, cpu_hours, missing_section, paired_section, readme_table, summary_table
 
 README_BEGIN, README_END = "<!-- summary:begin -->", "<!-- summary:end -->"
 
@@ -162,8 +162,25 @@ def _definitions(grid: dict[str, Any], loaded: list) -> list[str]:
         lines += [f"> **Partial comparison: {len(cells) - n_done} of {len(cells)} cells not run yet** "
                   "(method/variant/target: seeds missing): "
                   + "; ".join(f"{k}: {' '.join(v)}" for k, v in missing.items())
-                  + ". Rows below aggregate the finished seeds only; absent rows were not run.", ""]
+                  + ". Rows below aggregate the finished seeds only; absent rows were not run. "
+                  + _outside_main_cost(grid, loaded), ""]
     return lines
+
+
+def _outside_main_cost(grid: dict[str, Any], loaded: list) -> str:
+    """What the cells not run outside the main grid (the secondary rows and the named lines) would cost."""
+    main = grid.get("main") or {}
+    rows = set(main_rows(grid)) | set(main_rows(grid, image=True))
+    done = {(c["method"], c["variant"], c["target"], c["seed"]): r for c, r in loaded if r is not None}
+    left = [c for c, r in loaded if r is None
+            and not ((c["method"], c["variant"]) in rows and c["target"] in main.get("targets", []))]
+    if not left:
+        return "Every cell outside the main grid has run."
+    minutes = [cell_minutes(grid, done, c["method"], c["variant"])[0] for c in left]
+    known = [m for m in minutes if not math.isnan(m)]
+    return (f"Of them, {len(left)} are outside the main grid (the secondary rows and the named lines): ≈ "
+            f"{sum(known) / 60:.1f} CPU-hours at their rows' minutes per cell (measured, else the grid's `cpu_min`)"
+            + (f", {len(minutes) - len(known)} cell(s) unpriced" if len(known) < len(minutes) else "") + ".")
 
 
 def _row(grid: dict[str, Any], out: Path, target: str, key: tuple[str, str, str], items: list):
