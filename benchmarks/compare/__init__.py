@@ -12,8 +12,8 @@ The grid (methods x variants x targets x seeds, with budgets) is data: benchmark
 subprocess into ``<out>/<method>/<variant>/<target>/seed<s>/`` and is finished when its ``results.json`` exists:
 finished cells are skipped, a learner cell with a ``checkpoint.pt`` but no ``results.json`` continues with
 ``--resume``, so a long comparison can be split over sessions on one machine; on a new one, ``--skip-recorded``
-also skips the cells the results file records with the grid's settings now. ``--jobs N`` runs N cells at once (subprocesses);
-``--ray ADDRESS`` (``local`` for ``ray.init()``) runs them as Ray tasks instead (optional dependency).
+also skips the cells the results file records with the grid's settings now. ``--jobs N`` runs N cells at once
+(subprocesses); ``--ray ADDRESS`` (``local`` for ``ray.init()``) runs them as Ray tasks instead (optional dependency).
 One compare writes to an ``--out`` at a time (``<out>/.compare.lock``); stopping it (Ctrl-C, SIGTERM) stops its
 cells' processes. cell.json records the settings a cell ran with: a finished cell whose grid entry changed since is
 refused (``--rerun-changed`` reruns it into a fresh folder) and left out of the report.
