@@ -34,7 +34,9 @@ def readme_summary(grid: dict[str, Any], records: list[dict[str, Any]], cells: l
                       "Success at 1 cm · mean moves to success, the same episodes for every method "
                       f"({len(grid['seeds'])} seeds × {grid['episodes']} per task; fewer seeds named; empty: not a "
                       "cell of the grid). Written from `docs/results/cells.jsonl` by `python -m benchmarks.compare "
-                      "--report-only`; the figure: [docs/figures/summary.png](docs/figures/summary.png).",
+                      "--report-only`.", "",
+                      "![Success and moves against the simulator moves each method spent (random targets)]"
+                      "(docs/figures/summary.png)",
                       README_END])
 
 
