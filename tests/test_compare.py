@@ -436,3 +436,23 @@ def test_paired_interval_is_clipped_to_what_a_success_difference_can_be():
     assert _ci([-1.0] * 19 + [0.0], 100, 0, bounds=(-1.0, 1.0)) == "-95 [-100, -85]"   # unclipped: -105
     assert _ci([-1.0] * 19 + [0.0], 100, 0) == "-95 [-105, -85]"
     assert _ci([7.0]) == "+7.0 (no interval)"
+
+
+def test_gallery_shows_the_main_rows_and_says_which_cells_ran_without_shapes():
+    from benchmarks.compare.figures import _gallery_panels
+    grid = compare.load_grid()
+    sh = {"start": [[0, 0], [1, 0]], "final": [[0, 0], [0, 1]], "target": [[0, 0], [0, 1]]}
+    ep = [{"success": True, "steps": 3, "final_error": 0.005}]
+
+    def cell(method, variant, target, seed, **rec):
+        return {"method": method, "variant": variant, "target": target, "seed": seed}, {"episodes": ep, **rec}
+    done = [cell("cem", "default", "random", 0, shapes=sh), cell("cem", "default", "random", 1),   # ran, no shapes
+            cell("sac", "points", "random", 0, shapes=sh),                                       # secondary row
+            cell("pets", "tuned_image", "random", 0),                                            # no shapes at all
+            cell("ppo", "tuned", "random", 0, heldout={"arc": {"shapes": sh}}),                  # not heldout's source
+            cell("ppo", "tuned", "random_curve", 2, heldout={"arc": {"shapes": sh}})]
+    rows = dict(_gallery_panels(grid, done, "random"))
+    assert set(rows) == {"cem/default"}
+    assert rows["cem/default"] == [sh, "no shapes", None, None, None]
+    held = dict(_gallery_panels(grid, done, "arc"))
+    assert held == {"ppo/tuned\n(trained on random_curve)": [None, None, sh, None, None]}

@@ -153,19 +153,30 @@ def _planner_error_vs_evals(plt, done: list, target: str, note: str):
 
 
 def _gallery_panels(grid: dict[str, Any], done: list, target: str) -> list[tuple[str, list]]:
-    """Per row on ``target`` (a method per row, ordered as the grid): its seeds' first episodes' shapes."""
-    rows: dict[tuple, dict[int, dict]] = {}
+    """Per row on ``target`` (a method per row, ordered as the grid; where the grid names its main rows, those only,
+    a learner on a held-out shape by its policy trained on the main ``heldout_trained_on`` task): its seeds' first
+    episodes' shapes. A seed's entry is the shapes, "no shapes" where the cell ran without recording them (cells
+    collected before the records held shapes), or None where it has not run."""
+    main = grid.get("main") or {}
+    keep = set(main_rows(grid)) | set(main_rows(grid, image=True)) if main else None
+    trained_on = main.get("heldout_trained_on")
+    rows: dict[tuple, dict[int, Any]] = {}
     for c, r in done:
-        if c["target"] == target and r.get("shapes"):
-            rows.setdefault((c["method"], c["variant"], ""), {})[c["seed"]] = r["shapes"]
+        if keep is not None and (c["method"], c["variant"]) not in keep:
+            continue
+        if c["target"] == target:
+            rows.setdefault((c["method"], c["variant"], ""), {})[c["seed"]] = r.get("shapes") or "no shapes"
         held = (r.get("heldout") or {}).get(target)
-        if held and held.get("shapes") and c["target"] != target:
-            rows.setdefault((c["method"], c["variant"], c["target"]), {})[c["seed"]] = held["shapes"]
+        if held and c["target"] != target and (trained_on is None or c["target"] == trained_on):
+            rows.setdefault((c["method"], c["variant"], c["target"]), {})[c["seed"]] = \
+                held.get("shapes") or "no shapes"
     order = list(grid["methods"])
     out = []
     for (method, variant, trained), by_seed in sorted(rows.items(), key=lambda kv: (
             order.index(kv[0][0]) if kv[0][0] in order else 99, kv[0][1], kv[0][2])):
-        label = f"{method}/{variant}" + (f" (trained on {trained})" if trained else "")
+        if all(v == "no shapes" for v in by_seed.values()):
+            continue
+        label = f"{method}/{variant}" + (f"\n(trained on {trained})" if trained else "")
         out.append((label, [by_seed.get(s) for s in grid["seeds"]]))
     return out
 
@@ -173,7 +184,9 @@ def _gallery_panels(grid: dict[str, Any], done: list, target: str) -> list[tuple
 def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
     """Start (grey), final shape (blue) and target (dashed, at the final shape's centroid: the error ignores
     translation) of each seed's first episode, a row per method; every panel the same view and scale, and the same
-    episode in each column (the episodes are paired)."""
+    episode in each column (the episodes are paired) around that column's centre. The view holds 98 % of the drawn
+    points, so one rope that drifted off does not shrink every other to a sliver; what lies beyond it is cut at the
+    panel's edge."""
     def placed(sh):
         """(start, final, target moved onto the final shape's centroid) of one episode's shapes."""
         final, tgt = np.array(sh["final"]), np.array(sh["target"])
@@ -181,31 +194,44 @@ def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
 
     panels = _gallery_panels(grid, done, target)
     seeds = list(grid["seeds"])
-    rows = [(label, [None if sh is None else placed(sh) for sh in row]) for label, row in panels]
-    drawn = [a for _, row in rows for p in row if p is not None for a in p]
-    lim = max(float(np.abs(np.concatenate(drawn)).max()), 0.1) * 1.05
-    fig, axes = plt.subplots(len(rows), len(seeds), figsize=(1.9 * len(seeds) + 1.6, 1.9 * len(rows) + 0.5),
-                             squeeze=False)
+    rows = [(label, [sh if sh is None or isinstance(sh, str) else placed(sh) for sh in row])
+            for label, row in panels]
+    # A column's panels share its centre (one episode, the same start shape): the median of its panels' middles, so
+    # a rope that drifted off does not move it; every panel shares one half-width.
+    columns = [[p for _, row in rows if isinstance(p := row[j], tuple)] for j in range(len(seeds))]
+
+    def middle(p):
+        pts = np.concatenate(p)
+        return (pts.min(0) + pts.max(0)) / 2
+    centres = [np.median([middle(p) for p in col], axis=0) if col else np.zeros(2) for col in columns]
+    drawn = np.concatenate([np.abs(a - centres[j]).max(1) for j, col in enumerate(columns) for p in col for a in p])
+    lim = max(float(np.quantile(drawn, 0.98)), 0.1) * 1.05
+    cut = bool((drawn > lim).any())
+    height = 1.9 * len(rows) + 0.8
+    fig, axes = plt.subplots(len(rows), len(seeds), figsize=(1.9 * len(seeds) + 1.8, height), squeeze=False)
     for i, (label, row) in enumerate(rows):
         for j, shapes in enumerate(row):
             ax = axes[i, j]
-            ax.set_xlim(-lim, lim)
-            ax.set_ylim(-lim, lim)
+            ax.set_xlim(centres[j][0] - lim, centres[j][0] + lim)
+            ax.set_ylim(centres[j][1] - lim, centres[j][1] + lim)
             ax.set_aspect("equal")
             ax.set_xticks([])
             ax.set_yticks([])
-            if shapes is None:
-                ax.text(0, 0, "not run", ha="center", va="center", fontsize=7, color="0.5")
+            if i == 0:
+                ax.set_title(f"seed {seeds[j]}, episode 0", fontsize=7)
+            if not isinstance(shapes, tuple):
+                ax.text(*centres[j], "not run" if shapes is None else "ran; shapes\nnot recorded", ha="center",
+                        va="center", fontsize=7, color="0.5")
                 continue
             start, final, tgt = shapes
             ax.plot(*start.T, color="0.7", lw=1)
             ax.plot(*tgt.T, "k--", lw=1)
             ax.plot(*final.T, color="tab:blue", lw=1.5)
-            if i == 0:
-                ax.set_title(f"seed {seeds[j]}, episode 0", fontsize=7)
         axes[i, 0].set_ylabel(label, fontsize=7, rotation=0, ha="right", va="center")
-    fig.suptitle(f"{target}: start (grey), final shape (blue), target (dashed; at the final shape's centroid); "
-                 f"view ±{lim:.2f} m in every panel{note}", fontsize=8)
+    fig.suptitle(f"{target}: start (grey), final shape (blue), target (dashed; at the final shape's centroid)\n"
+                 f"view ±{lim:.2f} m in every panel (a column: one episode, one centre)" + ("; shapes beyond it are cut" if cut else "") + note,
+                 fontsize=8)
+    fig.subplots_adjust(top=1 - 0.75 / height, bottom=0.2 / height, left=0.2, right=0.98)
     return fig
 
 

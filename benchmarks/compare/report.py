@@ -330,6 +330,11 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
     rest = [n for n in names if not n.endswith("summary.png")]
     if rest:
         lines += ["## Figures" + (" (quick run: format only, not results)" if quick else ""), ""]
+        if any("gallery_" in n for n in rest):
+            lines += ["Per task: the learners' success against env steps, the planners' error against simulator "
+                      "evaluations, and a gallery: for each row (the main rows where the grid names them) the first "
+                      "episode of every seed, a column per seed, so each column is one episode for every row; every "
+                      "panel the same scale.", ""]
         lines += [f"![{Path(n).stem}]({rel}/{n})" for n in rest] + [""]
     if figures is not None:
         try:
