@@ -439,7 +439,7 @@ def test_paired_interval_is_clipped_to_what_a_success_difference_can_be():
 
 
 def test_gallery_shows_the_main_rows_and_says_which_cells_ran_without_shapes():
-    from benchmarks.compare.figures import _gallery_panels
+    from benchmarks.compare.figures import NO_SHAPES, _gallery_panels
     grid = compare.load_grid()
     sh = {"start": [[0, 0], [1, 0]], "final": [[0, 0], [0, 1]], "target": [[0, 0], [0, 1]]}
     ep = [{"success": True, "steps": 3, "final_error": 0.005}]
@@ -453,6 +453,6 @@ def test_gallery_shows_the_main_rows_and_says_which_cells_ran_without_shapes():
             cell("ppo", "tuned", "random_curve", 2, heldout={"arc": {"shapes": sh}})]
     rows = dict(_gallery_panels(grid, done, "random"))
     assert set(rows) == {"cem/default"}
-    assert rows["cem/default"] == [sh, "no shapes", None, None, None]
+    assert rows["cem/default"] == [sh, NO_SHAPES, None, None, None]
     held = dict(_gallery_panels(grid, done, "arc"))
     assert held == {"ppo/tuned\n(trained on random_curve)": [None, None, sh, None, None]}

@@ -13,6 +13,7 @@ import numpy as np
 from diffdlo.files import replacing
 from .costs import acting_sim_evals
 from .grid import main_rows, row_label
+from .summary import heldout_source
 from .stats import t_quantile
 
 
@@ -152,29 +153,32 @@ def _planner_error_vs_evals(plt, done: list, target: str, note: str):
     return fig
 
 
+NO_SHAPES = "no shapes"     # a gallery entry: the cell ran, its record holds no shapes
+
+
 def _gallery_panels(grid: dict[str, Any], done: list, target: str) -> list[tuple[str, list]]:
     """Per row on ``target`` (a method per row, ordered as the grid; where the grid names its main rows, those only,
     a learner on a held-out shape by its policy trained on the main ``heldout_trained_on`` task): its seeds' first
-    episodes' shapes. A seed's entry is the shapes, "no shapes" where the cell ran without recording them (cells
+    episodes' shapes. A seed's entry is the shapes, NO_SHAPES where the cell ran without recording them (cells
     collected before the records held shapes), or None where it has not run."""
     main = grid.get("main") or {}
     keep = set(main_rows(grid)) | set(main_rows(grid, image=True)) if main else None
-    trained_on = main.get("heldout_trained_on")
+    trained_on = heldout_source(grid) if main else None
     rows: dict[tuple, dict[int, Any]] = {}
     for c, r in done:
         if keep is not None and (c["method"], c["variant"]) not in keep:
             continue
         if c["target"] == target:
-            rows.setdefault((c["method"], c["variant"], ""), {})[c["seed"]] = r.get("shapes") or "no shapes"
+            rows.setdefault((c["method"], c["variant"], ""), {})[c["seed"]] = r.get("shapes") or NO_SHAPES
         held = (r.get("heldout") or {}).get(target)
         if held and c["target"] != target and (trained_on is None or c["target"] == trained_on):
             rows.setdefault((c["method"], c["variant"], c["target"]), {})[c["seed"]] = \
-                held.get("shapes") or "no shapes"
+                held.get("shapes") or NO_SHAPES
     order = list(grid["methods"])
     out = []
     for (method, variant, trained), by_seed in sorted(rows.items(), key=lambda kv: (
             order.index(kv[0][0]) if kv[0][0] in order else 99, kv[0][1], kv[0][2])):
-        if all(v == "no shapes" for v in by_seed.values()):
+        if all(v == NO_SHAPES for v in by_seed.values()):
             continue
         label = f"{method}/{variant}" + (f"\n(trained on {trained})" if trained else "")
         out.append((label, [by_seed.get(s) for s in grid["seeds"]]))
@@ -229,8 +233,8 @@ def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
             ax.plot(*final.T, color="tab:blue", lw=1.5)
         axes[i, 0].set_ylabel(label, fontsize=7, rotation=0, ha="right", va="center")
     fig.suptitle(f"{target}: start (grey), final shape (blue), target (dashed; at the final shape's centroid)\n"
-                 f"view ±{lim:.2f} m in every panel (a column: one episode, one centre)" + ("; shapes beyond it are cut" if cut else "") + note,
-                 fontsize=8)
+                 f"view ±{lim:.2f} m in every panel (a column: one episode, one centre)"
+                 + ("; shapes beyond it are cut" if cut else "") + note, fontsize=8)
     fig.subplots_adjust(top=1 - 0.75 / height, bottom=0.2 / height, left=0.2, right=0.98)
     return fig
 
