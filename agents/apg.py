@@ -52,7 +52,6 @@ from agents.cli import run_cli
 from agents.config import (InputOptions, RunOptions, TaskOptions, check_layer_sizes, check_ranges, check_types,
                            part)
 from agents.buffer import ReplayBuffer
-from agents.hybrid import FEATURE_OBS
 from agents.networks import Features, mlp
 from agents.run import Run, learner
 from agents.sac import HybridActor

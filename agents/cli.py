@@ -15,7 +15,7 @@ from diffdlo.files import OutBusyError
 from diffdlo.params import ParamsError
 from diffdlo.rewards import REWARDS
 from diffdlo.shapes import TARGET_NAMES, TargetError
-from diffdlo.task import ACTION_TYPES, OBS_TYPES
+from diffdlo.task import ACTION_TYPES, OBS_TYPES, PICTURE_OBS
 
 
 def positive_int(text: str) -> int:
@@ -98,7 +98,7 @@ IMAGE_PRESETS = {"planet": "rssm"}
 def config_from_args(cls, algo: str, args: argparse.Namespace, ap: argparse.ArgumentParser):
     if args.config and args.preset:
         ap.error("give --config or --preset, not both")
-    if not (args.config or args.preset) and args.obs in ("image", "image_single") and algo in IMAGE_PRESETS:
+    if not (args.config or args.preset) and args.obs in PICTURE_OBS and algo in IMAGE_PRESETS:
         args.preset = IMAGE_PRESETS[algo]
         print(f"{algo}: --obs {args.obs} takes the preset {args.preset!r} (the default one reads points)",
               file=sys.stderr)

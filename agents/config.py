@@ -15,11 +15,10 @@ from typing import Any
 import torch
 import yaml
 
-from agents.hybrid import FEATURE_OBS
 from diffdlo.checks import check_interval
 from diffdlo.params import PARAMS_DIR, CableParams, load_params   # one folder: cable params and presets
 from diffdlo.rewards import REWARDS
-from diffdlo.task import ACTION_TYPES, EXIT_RULES, OBS_TYPES, resolve_target
+from diffdlo.task import ACTION_TYPES, COORDINATE_OBS, EXIT_RULES, OBS_TYPES, PICTURE_OBS, resolve_target
 
 SECTIONS = ("task", "run", "inputs")
 ENCODERS = ("nature", "keypoints")
@@ -183,8 +182,8 @@ class InputOptions:
         check_ranges(self, {"features_dim": "[1, inf)"})
         _choice("features", self.features, ("relative", "raw"))
         _choice("encoder", self.encoder, ENCODERS)
-        if self.features == "relative" and task.obs not in FEATURE_OBS:
-            raise ValueError(f"features 'relative' need obs {list(FEATURE_OBS)}, got {task.obs!r} "
+        if self.features == "relative" and task.obs not in COORDINATE_OBS:
+            raise ValueError(f"features 'relative' need obs {list(COORDINATE_OBS)}, got {task.obs!r} "
                              "(use --set features=raw for images)")
         if self.normalize_obs and self.features != "relative":
             raise ValueError("normalize_obs needs features 'relative' (images and raw observations are not normalized)")
@@ -320,7 +319,7 @@ def load_config(cls, name: str | Path, overrides: dict[str, Any] | None = None):
         raise ValueError(f"config file {str(path)!r} does not exist")
     values = yaml.safe_load(path.read_text()) or {}
     overrides = dict(overrides or {})
-    if overrides.get("obs") in ("image", "image_single") and values.get("features") == "relative":
+    if overrides.get("obs") in PICTURE_OBS and values.get("features") == "relative":
         overrides.setdefault("features", "raw")
         overrides.setdefault("normalize_obs", False)
     values.update(overrides)

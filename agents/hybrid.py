@@ -47,7 +47,6 @@ def join(node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
 
 
 # ====================================================================== features
-FEATURE_OBS = ("points", "distance", "perceived")    # perceived: points read from the pictures
 
 
 def relative_features(obs: Any, length: float) -> torch.Tensor:

@@ -15,12 +15,13 @@ from agents.dynamics import EnsembleDynamics, k_step_errors
 from agents.envs import make_env
 from agents.rssm import RSSM
 from diffdlo.params import CableParams
+from diffdlo.task import COORDINATE_OBS, POINT_OBS
 
 
 def decoded_positions(model: RSSM, feat: torch.Tensor, obs_type: str, target: torch.Tensor | None = None):
     """Rope node positions [m] (..., N, 2) decoded from features, for points (node_poses) or distance (+ target)."""
     dec = model.decode(feat)
-    if obs_type in ("points", "perceived"):
+    if obs_type in POINT_OBS:
         return dec["node_poses"] / model.scale
     if obs_type == "distance":
         return dec["obs"] / model.scale + target
@@ -76,7 +77,7 @@ def open_loop_eval(model: RSSM | EnsembleDynamics, cfg, n_episodes: int | None =
     target = env.core.get_state(generators=False).target.float()
     out: dict[str, Any] = {"n": int(alive.sum()), "context": context}
     a_ = alive.to(true.device)
-    if cfg.task.obs in ("points", "distance", "perceived"):
+    if cfg.task.obs in COORDINATE_OBS:
         pred = decoded_positions(model, feat, cfg.task.obs, target[:, None])
         last = pos_seq[context].float()[:, None].expand_as(true)
         for k in horizons:
@@ -111,7 +112,7 @@ def plot_open_loop(res: dict[str, Any], path: Path | str, obs_type: str, ropes: 
     idx = res["alive"].nonzero().flatten().tolist()[:ropes] or [0]
     K = res["pred"].shape[1]
     steps = tuple(s for s in steps if s <= K) or (K,)
-    images = obs_type not in ("points", "distance", "perceived")
+    images = obs_type not in COORDINATE_OBS
     cols = len(steps) * (2 if images else 1)
     fig, axes = plt.subplots(len(idx), cols, figsize=(2.6 * cols, 2.6 * len(idx)), squeeze=False)
     for r, i in enumerate(idx):

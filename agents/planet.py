@@ -47,6 +47,7 @@ from agents.openloop import decoded_positions, open_loop_eval, openloop_row, plo
 from agents.rssm import RSSM
 from diffdlo.params import CableParams
 from diffdlo.rewards import shape_error
+from diffdlo.task import COORDINATE_OBS, POINT_OBS
 from planners.cem import CEM, optimize_together
 
 
@@ -102,14 +103,14 @@ class PlaNetConfig:
         if self.model not in ("ensemble", "rssm"):
             raise ValueError(f"unknown model {self.model!r}: use 'ensemble' or 'rssm'")
         if self.model == "ensemble":
-            if self.task.obs not in ("points", "perceived") or self.task.action != "node":
+            if self.task.obs not in POINT_OBS or self.task.action != "node":
                 raise ValueError(f"model 'ensemble' predicts node positions from node actions: it needs obs 'points' or 'perceived' "
                                  f"and action 'node', got obs {self.task.obs!r} and action {self.task.action!r} "
                                  "(use --preset rssm)")
             check_settings(self.members, self.model_hidden, self.augment, self.frame, self.propagation)
         if self.plan_objective not in ("reward", "shape"):
             raise ValueError(f"plan_objective must be 'reward' or 'shape', got {self.plan_objective!r}")
-        if self.plan_objective == "shape" and self.task.obs not in ("points", "distance", "perceived"):
+        if self.plan_objective == "shape" and self.task.obs not in COORDINATE_OBS:
             raise ValueError("plan_objective 'shape' needs points or distance observations, or perceived points (it "
                              "decodes node positions)")
         check_types(self)

@@ -30,6 +30,13 @@ from .rewards import orientation_error, reward as move_reward, shape_error
 from .shapes import (CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape)
 
 OBS_TYPES = ("points", "distance", "image", "image_single", "perceived")
+# The observation kinds, named once. POINT_OBS: {node_poses, target_poses}, the rope's and target's node positions
+# ("perceived": read from the env's pictures). COORDINATE_OBS: node coordinates of either form (positions, or
+# "distance": rope - target per node). PICTURE_OBS: the observation is pictures. DRAWN_OBS: the env draws pictures.
+POINT_OBS = ("points", "perceived")
+COORDINATE_OBS = ("points", "distance", "perceived")
+PICTURE_OBS = ("image", "image_single")
+DRAWN_OBS = PICTURE_OBS + ("perceived",)
 ACTION_TYPES = ("node", "pixel")
 ACTION_DIMS = {"node": 3, "pixel": 4}
 EXIT_RULES = ("truncate", "fail")
@@ -183,7 +190,7 @@ def observation_space(obs_type: str, p: CableParams, image_size: int) -> spaces.
     bound = np.float32(max(p.workspace) / 2 + p.length + p.max_disp)
     points = spaces.Box(-bound, bound, (n, 2), np.float32)
     img = spaces.Box(0, 255, (s, s, 3), np.uint8)
-    if obs_type in ("points", "perceived"):
+    if obs_type in POINT_OBS:
         return spaces.Dict({"node_poses": points, "target_poses": points})
     if obs_type == "distance":
         return spaces.Box(-2 * bound, 2 * bound, (n, 2), np.float32)
@@ -222,7 +229,7 @@ def observe(obs_type: str, pos: torch.Tensor, target: torch.Tensor, image_size: 
         return {"node_poses": pos.to(torch.float32, copy=True), "target_poses": target.to(torch.float32, copy=True)}
     if obs_type == "distance":
         return (pos - target).to(torch.float32)
-    if obs_type not in ("image", "image_single"):
+    if obs_type not in PICTURE_OBS:
         raise ValueError(f"observe draws obs_type 'points', 'distance', 'image' or 'image_single', got {obs_type!r} "
                          "(an env reads 'perceived' with its perception)")
     if pictures is None:

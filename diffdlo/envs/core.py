@@ -368,7 +368,7 @@ class BatchedShapeControl:
         """The current observation of every env (diffdlo.task.observe): a dict of (B, ...) tensors, or a (B, N, 2)
         tensor for obs_type="distance"."""
         s = self._state
-        if self.obs_type in ("image", "image_single", "perceived") and self._pictures is None:
+        if self.obs_type in task.DRAWN_OBS and self._pictures is None:
             self._pictures = task.target_pictures(s.target, self.image_size, self.view_size, self.mark_end)
         if self.obs_type != "perceived":
             return task.observe(self.obs_type, s.pos, s.target, self.image_size, self.view_size, self._pictures)
