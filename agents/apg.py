@@ -49,12 +49,12 @@ import torch.nn as nn
 
 from agents import hybrid
 from agents.cli import run_cli
-from agents.config import (InputOptions, RunOptions, TaskOptions, check_layer_sizes, check_ranges, check_types,
-                           part)
+from agents.config import SECTIONS, InputOptions, RunOptions, TaskOptions, part
 from agents.buffer import ReplayBuffer
 from agents.networks import Features, mlp
 from agents.run import Run, learner
 from agents.sac import HybridActor
+from diffdlo.checks import check_fields, option
 from diffdlo.rewards import reward as move_reward, shape_error
 from diffdlo.task import decode_node_action, greedy_drags
 
@@ -70,41 +70,37 @@ class APGConfig:
                            log_every=1)
     inputs: InputOptions = part(InputOptions)
     # checkpoints and evaluations are checked after each update; log_every counts updates
-    horizon: int = 1                      # H: moves chained in one differentiable rollout
-    node: str = "gain"                    # "gain" | "greedy" | "score" (see the module's docstring)
-    gain_explore: float = 0.5             # node "gain": the share of random nodes in training, decaying linearly to 0
-    gain_replay: int = 5000               # node "gain": (s, k, r) samples kept for its regression (0: online only)
-    gain_batch: int = 256                 # node "gain": samples per regression step (one step per update)
-    critic: bool = False                  # SHAC: learned V(s) beyond the horizon (and as the node's baseline)
-    objective: str = "reward"             # "reward": the env's reward; "log_error": log e_t - log e_{t+1} per move
-    lr: float = 1e-3                      # actor's Adam
-    anneal_lr: bool = True                # the actor's lr decays linearly to 0 over total_steps (PPO's anneal_lr)
-    critic_lr: float = 1e-3
-    critic_epochs: int = 4                # full-batch critic steps per update, on the rollout's TD(lambda) targets
-    gamma: float = 0.97
-    gae_lambda: float = 0.95
-    node_coef: float = 1.0                # weight of the score-function term (node "score")
-    ent_coef: float = 0.01                # node entropy bonus (node "score")
-    max_grad_norm: float = 0.0            # > 0: clip the actor's gradient norm to it (logged); 0: never clip
-    hidden: list = dataclasses.field(default_factory=lambda: [256, 256])
-    log_std_min: float = -5.0             # HybridActor's log-std bounds (unused: APG acts with the mean drag)
-    log_std_max: float = 2.0
+    horizon: int = option(1, "[1, inf)", help="H: moves chained in one differentiable rollout")
+    node: str = option("gain", choices=NODE_RULES, help='"gain" | "greedy" | "score" (see the module\'s docstring)')
+    gain_explore: float = option(0.5, "[0, 1]", help='node "gain": the share of random nodes in training, decaying '
+                                                     "linearly to 0")
+    gain_replay: int = option(5000, "[0, inf)",
+                              help='node "gain": (s, k, r) samples kept for its regression (0: online only)')
+    gain_batch: int = option(256, "[1, inf)", help='node "gain": samples per regression step (one step per update)')
+    critic: bool = option(False, help="SHAC: learned V(s) beyond the horizon (and as the node's baseline)")
+    objective: str = option("reward", choices=OBJECTIVES,
+                            help='"reward": the env\'s reward; "log_error": log e_t - log e_{t+1} per move')
+    lr: float = option(1e-3, "(0, inf)", help="actor's Adam")
+    anneal_lr: bool = option(True, help="the actor's lr decays linearly to 0 over total_steps (PPO's anneal_lr)")
+    critic_lr: float = option(1e-3, "(0, inf)", help="critic's Adam")
+    critic_epochs: int = option(4, "[1, inf)",
+                                help="full-batch critic steps per update, on the rollout's TD(lambda) targets")
+    gamma: float = option(0.97, "[0, 1]", help="discount")
+    gae_lambda: float = option(0.95, "[0, 1]", help="the critic's TD(lambda)")
+    node_coef: float = option(1.0, "[0, inf)", help='weight of the score-function term (node "score")')
+    ent_coef: float = option(0.01, "[0, inf)", help='node entropy bonus (node "score")')
+    max_grad_norm: float = option(0.0, "[0, inf)",
+                                  help="> 0: clip the actor's gradient norm to it (logged); 0: never clip")
+    hidden: list = option(factory=lambda: [256, 256], layers=True, help="the actor's and critic's hidden layers")
+    log_std_min: float = option(-5.0, "(-inf, inf)",
+                                help="HybridActor's log-std bounds (unused: APG acts with the mean drag)")
+    log_std_max: float = option(2.0, "(-inf, inf)")
 
     def check(self) -> None:
         self.task.check()
         self.run.check()
         self.inputs.check(self.task)
-        check_types(self)
-        check_layer_sizes("hidden", self.hidden)
-        check_ranges(self, {"horizon": "[1, inf)", "lr": "(0, inf)", "critic_lr": "(0, inf)",
-                            "critic_epochs": "[1, inf)", "gamma": "[0, 1]", "gae_lambda": "[0, 1]",
-                            "node_coef": "[0, inf)", "ent_coef": "[0, inf)", "gain_explore": "[0, 1]",
-                            "gain_replay": "[0, inf)", "gain_batch": "[1, inf)", "max_grad_norm": "[0, inf)",
-                            "log_std_min": "(-inf, inf)", "log_std_max": "(-inf, inf)"})
-        if self.node not in NODE_RULES:
-            raise ValueError(f"unknown node {self.node!r}: use one of {list(NODE_RULES)}")
-        if self.objective not in OBJECTIVES:
-            raise ValueError(f"unknown objective {self.objective!r}: use one of {list(OBJECTIVES)}")
+        check_fields(self, skip=SECTIONS)
         if self.task.action != "node":
             raise ValueError(f"apg chooses a node and backpropagates through its drag: it needs action 'node', got "
                              f"{self.task.action!r}")

@@ -16,8 +16,9 @@ Samplers:
   just before the write head is excluded unless its episode ended there (its ``obs[t + 1]`` is not written yet).
 - ``compute_gae`` + ``minibatches``: the latest rollout (the whole storage, filled once from row 0) with GAE(lambda)
   and shuffled minibatches without replacement (PPO).
-- ``sample_chunks(batch, length)``: contiguous chunks of ``length`` rows of one env column that never cross an
-  episode end (an end may only be the chunk's last row) nor the write head (PlaNet).
+- ``sample_sequences(batch, length)``: contiguous chunks of ``length`` rows of one env column that never cross an
+  episode end (an end may only be the chunk's last row) nor the write head, plus the observation after the last row
+  (PlaNet's world models).
 """
 from __future__ import annotations
 
@@ -209,17 +210,27 @@ class ReplayBuffer:
         s, e = ok.nonzero(as_tuple=True)
         return torch.stack([rows[s, 0], e], dim=1)
 
-    def sample_chunks(self, batch_size: int, length: int, generator: torch.Generator | None = None) -> dict[str, Any]:
-        """(batch, length, ...) chunks of obs, action, reward, terminated, truncated."""
+    def sample_sequences(self, batch_size: int, length: int,
+                         generator: torch.Generator | None = None) -> dict[str, Any]:
+        """Uniform valid chunks (``chunk_starts``) and the observation after each one's last row: obs (batch,
+        length + 1, ...), action (batch, length, A), reward, terminated, truncated, t, e (batch, length) and mask
+        (batch, length + 1), 0 only for that extra observation where it is not written yet (the newest row, its
+        episode not ended). The extra observation is ``next_obs``: the stored final one where the episode ended."""
         starts = self.chunk_starts(length)
         if len(starts) == 0:
             raise ValueError(f"no chunk of length {length} fits in the buffer yet")
         pick = starts[torch.randint(len(starts), (batch_size,), generator=generator)]
         t = ((pick[:, :1] + torch.arange(length)[None]) % self.capacity).to(self.device)   # (batch, L)
         e = pick[:, 1:].expand(-1, length).to(self.device)
-        return {"obs": self._out(index_obs(self.obs, t, e)), "action": self.action[t, e],
-                "reward": self.reward[t, e], "terminated": self.terminated[t, e],
-                "truncated": self.truncated[t, e], "t": t, "e": e}
+        t_last, e_last = t[:, -1], e[:, -1]
+        ended = self.terminated[t_last, e_last] | self.truncated[t_last, e_last]
+        unknown = (t_last == (self.pos - 1) % self.capacity) & ~ended
+        nxt = self.next_obs(t_last, e_last)
+        obs = {k: torch.cat([v, nxt[k][:, None]], 1) for k, v in index_obs(self.obs, t, e).items()}
+        mask = torch.ones(batch_size, length + 1, device=self.device)
+        mask[:, -1] = (~unknown).float()
+        return {"obs": self._out(obs), "action": self.action[t, e], "reward": self.reward[t, e],
+                "terminated": self.terminated[t, e], "truncated": self.truncated[t, e], "mask": mask, "t": t, "e": e}
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, Any]:

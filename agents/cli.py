@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Any, Callable
@@ -72,8 +73,16 @@ def make_parser(prog: str, doc: str | None) -> argparse.ArgumentParser:
 
 
 RESUME_KEYS = ("total_steps", "eval_every", "eval_episodes", "checkpoint_every", "device")   # may change at --resume
-CLI_KEYS = ("threads", "target", "obs", "action", "reward", "total_steps", "num_envs", "seed", "device", "eval_every",
-            "eval_episodes", "checkpoint_every", "max_steps", "params", "perception", "image_size")
+
+
+def flag_options() -> tuple[str, ...]:
+    """The flags that set a config option: each is named as an option of the task or the run (``--max-steps``:
+    max_steps), so every learner takes the same ones."""
+    options = {f.name for part in (config_lib.TaskOptions, config_lib.RunOptions) for f in dataclasses.fields(part)}
+    return tuple(key for key in vars(make_parser("", None).parse_args(["--out", ""])) if key in options)
+
+
+CLI_KEYS = flag_options()
 
 
 def requested_options(args: argparse.Namespace, ap: argparse.ArgumentParser) -> dict[str, Any]:

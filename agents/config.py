@@ -15,111 +15,60 @@ from typing import Any
 import torch
 import yaml
 
-from diffdlo.checks import check_interval
+from diffdlo.checks import check_fields, field_kinds, option
+from diffdlo.envs.options import EnvOptions, env_field
 from diffdlo.params import PARAMS_DIR, CableParams, load_params   # one folder: cable params and presets
-from diffdlo.rewards import REWARDS
-from diffdlo.task import ACTION_TYPES, COORDINATE_OBS, EXIT_RULES, OBS_TYPES, PICTURE_OBS, resolve_target
+from diffdlo.task import COORDINATE_OBS, PICTURE_OBS
 
 SECTIONS = ("task", "run", "inputs")
 ENCODERS = ("nature", "keypoints")
 POLICIES = ("hybrid", "gaussian")
 
 
-def _positive_int(key: str, v: Any, least: int = 1) -> None:
-    if not isinstance(v, int) or isinstance(v, bool) or v < least:
-        raise ValueError(f"{key} must be a{' positive' if least == 1 else ' non-negative'} integer, got {v!r}")
-
-
-def _is(kind: str, v: Any) -> bool:
-    if kind in ("Any", "Callable"):
-        return True
-    if kind == "None":
-        return v is None
-    if kind == "int":
-        return isinstance(v, int) and not isinstance(v, bool)
-    if kind == "float":
-        return isinstance(v, (int, float)) and not isinstance(v, bool)
-    return isinstance(v, {"bool": bool, "str": str, "list": list, "dict": dict}.get(kind, object))
-
-
-def check_types(part) -> None:
-    """Every option holds a value of its declared type (e.g. ``--set lr=abc`` is named, not trained with)."""
-    for f in dataclasses.fields(part):
-        if f.name in SECTIONS:
-            continue
-        kinds = [k.strip() for k in str(f.type).split("|")]
-        v = getattr(part, f.name)
-        if not any(_is(k, v) for k in kinds):
-            wanted = "true or false" if kinds == ["bool"] else " or ".join(kinds)
-            raise ValueError(f"{f.name} must be {wanted}, got {v!r} ({type(v).__name__})")
-
-
-def check_ranges(part, ranges: dict[str, str]) -> None:
-    """Each named option (None: not set, skipped) within its interval, written "[lo, hi]" / "(lo, hi)" / mixed,
-    with inf for no bound; the message names the option, the interval and the value."""
-    for key, interval in ranges.items():
-        if getattr(part, key) is not None:
-            check_interval(key, getattr(part, key), interval)
-
-
-def check_layer_sizes(key: str, v: Any) -> None:
-    if not isinstance(v, list) or not all(_is("int", x) and x >= 1 for x in v):
-        raise ValueError(f"{key} must be a list of positive layer sizes, e.g. [256, 256], got {v!r}")
-
-
-def _choice(key: str, v: Any, allowed) -> None:
-    if v not in allowed:
-        raise ValueError(f"unknown {key} {v!r}: use one of {list(allowed)}")
-
-
 @dataclasses.dataclass
 class TaskOptions:
-    """The env a learner trains and is evaluated on (diffdlo.envs.BatchedShapeControl's arguments)."""
-    target: Any = "random"
-    obs: str = "points"
-    action: str = "node"
-    reward: str = "position_orientation"
-    max_steps: int | None = None          # actions per episode (None: params' 100)
-    params: str = "cable"
-    param_overrides: dict | None = None   # e.g. {n_nodes: 6, length: 0.15} for quick tests
-    start: Any = None                     # None (random start) or a .npy path / (N, 2) list: a fixed start shape
-    success_tol: float | None = None      # None: params' 0.01 m
-    image_size: int = 64
-    success_bonus: float | None = None    # None: params' 20 (Algorithm 2)
-    step_penalty: float = 0.0
-    on_exit: str = "truncate"             # "fail": leaving the workspace terminates the episode
-    exit_penalty: float = 0.0
-    curve_max_turn_deg: float = 12.0      # target "random_curve": the largest turn per node [deg]
-    mark_end: bool = False                # images: a dot on node 0 of rope and target (env option)
-    perception: str | None = None         # obs "perceived": a checkpoint of python -m diffdlo.perception
-    perception_refine: int | None = None  # its refinement steps per picture (None: the checkpoint's; 0: net alone)
+    """The env a learner trains and is evaluated on: ``diffdlo.envs.EnvOptions`` by the learners' flat names (``obs``
+    is its obs_type, ``action`` its action_type; each such field has EnvOptions' default, rule and help), with the
+    cable params by name and their overrides. ``env_options`` maps it onto EnvOptions; ``check`` builds that."""
+    target: Any = env_field("target")
+    obs: str = env_field("obs_type")
+    action: str = env_field("action_type")
+    reward: str = env_field("reward")
+    max_steps: int | None = env_field("max_steps")
+    params: str = option("cable", help="cable params name (params/<name>.yaml) or YAML path")
+    param_overrides: dict | None = option(None, help="CableParams fields replaced, e.g. {n_nodes: 6, length: 0.15}")
+    start: Any = env_field("start")
+    success_tol: float | None = env_field("success_tol")
+    image_size: int = env_field("image_size")
+    success_bonus: float | None = env_field("success_bonus")
+    step_penalty: float = env_field("step_penalty")
+    on_exit: str = env_field("on_exit")
+    exit_penalty: float = env_field("exit_penalty")
+    curve_max_turn_deg: float = env_field("curve_max_turn_deg")
+    mark_end: bool = env_field("mark_end")
+    perception: str | None = env_field("perception")
+    perception_refine: int | None = env_field("perception_refine")
 
     def check(self) -> None:
-        check_types(self)
-        check_ranges(self, {"max_steps": "[1, inf)", "perception_refine": "[0, inf)", "success_tol": "(0, inf)", "image_size": "[8, inf)",
-                            "success_bonus": "(-inf, inf)", "step_penalty": "(-inf, inf)",
-                            "exit_penalty": "(-inf, inf)", "curve_max_turn_deg": "[0, 90]"})
-        _choice("obs type", self.obs, OBS_TYPES)
-        _choice("action type", self.action, ACTION_TYPES)
-        _choice("reward", self.reward, REWARDS)
-        _choice("on_exit", self.on_exit, EXIT_RULES)
-        if not isinstance(self.mark_end, bool):
-            raise ValueError(f"mark_end must be true or false, got {self.mark_end!r}")
-        if self.obs != "perceived" and self.perception_refine is not None:
-            raise ValueError(f"perception_refine is read only by obs 'perceived', got obs {self.obs!r}")
-        if (self.obs == "perceived") != (self.perception is not None):
-            raise ValueError(f"obs 'perceived' and perception=PATH go together (a checkpoint of python -m "
-                             f"diffdlo.perception), got obs {self.obs!r} and perception {self.perception!r}")
-        if self.perception is not None:
-            from diffdlo.perception import Perception
-            Perception.load(self.perception, image_size=self.image_size, n_nodes=self.cable_params().n_nodes)
+        check_fields(self)                  # by the learners' names: "obs", and the rules' intervals
         po = self.param_overrides
         if po is not None:
             fields = {f.name for f in dataclasses.fields(CableParams)}
-            if not isinstance(po, dict) or set(po) - fields:
+            if set(po) - fields:
                 raise ValueError(f"param_overrides must map CableParams fields ({sorted(fields)}) to values, got "
                                  f"{po!r} (YAML flow maps need a space after each colon: {{n_nodes: 6}})")
-        resolve_target(self.target, self.cable_params())     # a bad target or params file is named before any run
+        self.env_options().resolve()        # the env's own rules: a bad params file or target is named before any run
+        if self.perception is not None:
+            from diffdlo.perception import Perception
+            Perception.load(self.perception, image_size=self.image_size, n_nodes=self.cable_params().n_nodes)
+
+    def env_options(self, params: CableParams | None = None) -> EnvOptions:
+        """The env's options of this task, with the run's resolved ``params`` (default: ``cable_params()``).
+        ``max_episode_steps`` is the episode length, so gymnasium's time limit agrees."""
+        p = self.cable_params() if params is None else params
+        same = {f.metadata["env_name"]: getattr(self, f.name) for f in dataclasses.fields(self)
+                if f.metadata.get("env_name")}
+        return EnvOptions(**same, params=p, max_episode_steps=self.max_steps or p.max_episode_steps)
 
     def cable_params(self) -> CableParams:
         """The run's cable parameters, resolved once (params file, then param_overrides) and passed down."""
@@ -127,31 +76,31 @@ class TaskOptions:
         return dataclasses.replace(p, **self.param_overrides) if self.param_overrides else p
 
 
+POSITIVE = dict(interval="[1, inf)", says="a positive integer")
+NON_NEGATIVE = dict(interval="[0, inf)", says="a non-negative integer")
+
+
 @dataclasses.dataclass
 class RunOptions:
     """Budget, seed, devices, evaluation and checkpoints of a run."""
-    total_steps: int = 100_000            # env transitions, all envs together
-    num_envs: int = 16
-    seed: int = 0
-    device: str = "cpu"                   # networks and buffer
-    env_device: str = ""                  # the simulator ("": same as device; "cpu" with device "cuda": fused CPU kernel)
-    threads: int = 1                      # torch CPU threads during training (restored afterwards)
-    eval_every: int = 10_000
-    eval_episodes: int = 20
-    eval_seed: int = 10_000
-    eval_targets: list = dataclasses.field(default_factory=list)   # held-out targets evaluated at the end
-    checkpoint_every: int = 10_000
-    log_every: int = 100                  # updates (SAC, PlaNet) or rollouts (PPO) between train-loss rows
-    rollout_candidates: int = 0           # > 0: the final evaluations act by policy rollouts (agents/rollout.py)
-    rollout_moves: int = 20               # their horizon: moves the policy finishes each candidate with
+    total_steps: int = option(100_000, **POSITIVE, help="env transitions, all envs together")
+    num_envs: int = option(16, **POSITIVE, help="ropes simulated in one batch")
+    seed: int = option(0, help="seed of the networks, the buffer and the training envs")
+    device: str = option("cpu", help="networks and buffer")
+    env_device: str = option("", help='the simulator ("": same as device; "cpu" with device "cuda": fused CPU kernel)')
+    threads: int = option(1, **POSITIVE, help="torch CPU threads during training (restored afterwards)")
+    eval_every: int = option(10_000, **POSITIVE, help="env transitions between evaluations")
+    eval_episodes: int = option(20, **POSITIVE, help="episodes per evaluation")
+    eval_seed: int = option(10_000, help="evaluation episode i is seeded eval_seed + i")
+    eval_targets: list = option(factory=list, help="held-out targets evaluated at the end")
+    checkpoint_every: int = option(10_000, **POSITIVE, help="env transitions between checkpoints")
+    log_every: int = option(100, **POSITIVE, help="updates (SAC, PlaNet) or rollouts (PPO) between train-loss rows")
+    rollout_candidates: int = option(0, **NON_NEGATIVE,
+                                     help="> 0: the final evaluations act by policy rollouts (agents/rollout.py)")
+    rollout_moves: int = option(20, **NON_NEGATIVE, help="their horizon: moves the policy finishes each candidate with")
 
     def check(self) -> None:
-        check_types(self)
-        for key in ("total_steps", "num_envs", "threads", "eval_every", "eval_episodes", "checkpoint_every",
-                    "log_every"):
-            _positive_int(key, getattr(self, key))
-        _positive_int("rollout_candidates", self.rollout_candidates, least=0)
-        _positive_int("rollout_moves", self.rollout_moves, least=0)
+        check_fields(self)
         for key in ("device", "env_device"):
             v = getattr(self, key)
             if key == "env_device" and not v:
@@ -168,43 +117,38 @@ class RunOptions:
 class InputOptions:
     """How observations become network inputs (agents/networks.py ``Features``): target-relative features
     (agents/hybrid.py), optionally running-normalized, or SB3's encoder (flattened floats, a CNN on images)."""
-    features: str = "raw"                 # "relative" | "raw"
-    normalize_obs: bool = False           # running mean/std of the features (relative features only)
-    cnn_channels: list = dataclasses.field(default_factory=lambda: [32, 64, 64])
-    features_dim: int = 256
-    encoder: str = "nature"               # images: "nature" (SB3 NatureCNN) | "keypoints" (spatial softmax)
-    keypoints: int = 32                   # encoder "keypoints": feature maps -> 2 x keypoints coordinates
-    augment_shift: int = 0                # images: DrQ random shift of up to this many pixels (0: off)
+    features: str = option("raw", choices=("relative", "raw"),
+                           help='"relative": target-relative features (agents/hybrid.py); "raw": SB3\'s encoder')
+    normalize_obs: bool = option(False, help="running mean/std of the features (relative features only)")
+    cnn_channels: list = option(factory=lambda: [32, 64, 64], layers=True, help="images: the CNN's channels")
+    features_dim: int = option(256, "[1, inf)", help="images: the encoder's output size")
+    encoder: str = option("nature", choices=ENCODERS,
+                          help='images: "nature" (SB3 NatureCNN) | "keypoints" (spatial softmax)')
+    keypoints: int = option(32, **POSITIVE, help='encoder "keypoints": feature maps -> 2 x keypoints coordinates')
+    augment_shift: int = option(0, **NON_NEGATIVE, help="images: DrQ random shift of up to this many pixels (0: off)")
 
     def check(self, task: TaskOptions) -> None:
-        check_types(self)
-        check_layer_sizes("cnn_channels", self.cnn_channels)
-        check_ranges(self, {"features_dim": "[1, inf)"})
-        _choice("features", self.features, ("relative", "raw"))
-        _choice("encoder", self.encoder, ENCODERS)
+        check_fields(self)
         if self.features == "relative" and task.obs not in COORDINATE_OBS:
             raise ValueError(f"features 'relative' need obs {list(COORDINATE_OBS)}, got {task.obs!r} "
                              "(use --set features=raw for images)")
         if self.normalize_obs and self.features != "relative":
             raise ValueError("normalize_obs needs features 'relative' (images and raw observations are not normalized)")
-        _positive_int("keypoints", self.keypoints)
-        _positive_int("augment_shift", self.augment_shift, least=0)
 
 
 def check_model_free(cfg) -> None:
-    """The checks SAC's and PPO's configs share: their task, run and input options, the policy head, the type of
-    every own field and the hidden layer sizes."""
+    """The checks SAC's and PPO's configs share: their task, run and input options, every own field against the
+    rule declared beside it, and the policy head against the actions."""
     cfg.task.check()
     cfg.run.check()
     cfg.inputs.check(cfg.task)
+    check_fields(cfg, skip=SECTIONS)
     check_policy(cfg.policy, cfg.task)
-    check_types(cfg)
-    check_layer_sizes("hidden", cfg.hidden)
 
 
 def check_policy(policy: str, task: TaskOptions) -> None:
-    """SAC's and PPO's policy head: "hybrid" (node categorical + per-node drag) needs node actions."""
-    _choice("policy", policy, POLICIES)
+    """SAC's and PPO's policy head (one of POLICIES, checked with the field): "hybrid" (node categorical + per-node
+    drag) needs node actions."""
     if policy == "hybrid" and task.action != "node":
         raise ValueError(f"policy 'hybrid' chooses a node: it needs action 'node', got {task.action!r} "
                          "(use --set policy=gaussian for pixel actions)")
@@ -232,19 +176,20 @@ def flat_names(cls) -> list[str]:
     return sorted(_section_fields(cls))
 
 
-def _field_types(cls) -> dict[str, str]:
-    types = {}
+def _flat_kinds(cls) -> dict[str, tuple[type, ...] | None]:
+    """flat option name -> the types its annotation allows (None: any)."""
+    kinds = {}
     for f in dataclasses.fields(cls):
         if f.name in SECTIONS:
-            types.update({g.name: str(g.type) for g in dataclasses.fields(f.default_factory())})
+            kinds.update(field_kinds(type(f.default_factory())))
         else:
-            types[f.name] = str(f.type)
-    return types
+            kinds[f.name] = field_kinds(cls)[f.name]
+    return kinds
 
 
-def _coerced(kind: str, v: Any) -> Any:
+def _coerced(kinds: tuple[type, ...] | None, v: Any) -> Any:
     """YAML reads 1e-3 (no dot) as a string: a string that is a number becomes one where the option is a float."""
-    if isinstance(v, str) and "float" in kind:
+    if isinstance(v, str) and kinds is not None and float in kinds:
         try:
             return float(v)
         except ValueError:
@@ -255,9 +200,9 @@ def _coerced(kind: str, v: Any) -> Any:
 def from_flat(cls, values: dict[str, Any], base=None):
     """A config ``cls`` from flat option names (YAML, ``--set``), on top of ``base`` (default: cls's defaults).
     Also takes the nested form of ``to_dict`` (sections as dicts). Unknown names raise ValueError."""
-    owner, types = _section_fields(cls), _field_types(cls)
-    values = {k: ({k2: _coerced(types.get(k2, ""), v2) for k2, v2 in v.items()} if k in SECTIONS and
-                  isinstance(v, dict) else _coerced(types.get(k, ""), v)) for k, v in values.items()}
+    owner, kinds = _section_fields(cls), _flat_kinds(cls)
+    values = {k: ({k2: _coerced(kinds.get(k2), v2) for k2, v2 in v.items()} if k in SECTIONS and
+                  isinstance(v, dict) else _coerced(kinds.get(k), v)) for k, v in values.items()}
     base = cls() if base is None else base
     top: dict[str, Any] = {}
     parts: dict[str, dict[str, Any]] = {}

@@ -32,12 +32,12 @@ import torch.nn as nn
 
 from agents import hybrid
 from agents.cli import run_cli
-from agents.config import InputOptions, RunOptions, TaskOptions, check_model_free, check_ranges, part
-from agents.envs import env_kwargs
+from agents.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
 from agents.policy import checkpoint_config, checkpoint_path, load_weights, read_checkpoint
 from agents.ppo import ActorCritic
 from agents.rollout import PolicyRollouts, check_rollout_obs
 from agents.run import Run, learner
+from diffdlo.checks import option
 
 # the network keys the student takes from its teacher's config (it starts as the teacher's policy)
 NETWORK_KEYS = ("policy", "hidden", "log_std_init", "inputs")
@@ -52,25 +52,24 @@ class DistillConfig:
     run: RunOptions = part(RunOptions, total_steps=32_768, num_envs=64, eval_every=8192, checkpoint_every=8192,
                            log_every=1)
     inputs: InputOptions = part(InputOptions)
-    teacher: str = ""                 # a PPO run folder (or its checkpoint.pt) with a hybrid policy
-    teacher_candidates: int = 32      # the teacher's rollouts: candidate first moves ...
-    teacher_moves: int = 20           # ... each finished by the base policy for at most this many moves
-    teacher_every: int = 0            # env steps between "the base policy becomes the student" (0: never)
-    fit_every: int = 8192             # env steps between fits on all the labelled states so far
-    beta: float = 0.5                 # probability of making the teacher's move (halved after every fit)
-    lr: float = 1e-4
-    epochs: int = 4
-    batch_size: int = 1024
+    teacher: str = option("", help="a PPO run folder (or its checkpoint.pt) with a hybrid policy")
+    teacher_candidates: int = option(32, "[1, inf)", help="the teacher's rollouts: candidate first moves ...")
+    teacher_moves: int = option(20, "[0, inf)",
+                                help="... each finished by the base policy for at most this many moves")
+    teacher_every: int = option(0, "[0, inf)",
+                                help='env steps between "the base policy becomes the student" (0: never)')
+    fit_every: int = option(8192, "[1, inf)", help="env steps between fits on all the labelled states so far")
+    beta: float = option(0.5, "[0, 1]", help="probability of making the teacher's move (halved after every fit)")
+    lr: float = option(1e-4, "(0, inf)", help="the student's Adam")
+    epochs: int = option(4, "[1, inf)", help="passes over the labelled states per fit")
+    batch_size: int = option(1024, "[1, inf)", help="labelled states per minibatch")
     # the network: overwritten by the teacher's at the start (the student is a copy of it)
-    policy: str = "hybrid"
-    hidden: list = dataclasses.field(default_factory=lambda: [256, 256])
-    log_std_init: float = -0.6931471805599453
+    policy: str = option("hybrid", choices=POLICIES, help="the student's policy head (hybrid only)")
+    hidden: list = option(factory=lambda: [256, 256], layers=True, help="the student's hidden layers")
+    log_std_init: float = option(-0.6931471805599453, help="the student's initial drag log std")
 
     def check(self) -> None:
         check_model_free(self)
-        check_ranges(self, {"teacher_candidates": "[1, inf)", "teacher_moves": "[0, inf)", "teacher_every": "[0, inf)",
-                            "fit_every": "[1, inf)", "beta": "[0, 1]", "lr": "(0, inf)", "epochs": "[1, inf)",
-                            "batch_size": "[1, inf)"})
         if not self.teacher:
             raise ValueError("teacher: give the PPO run to distill, --set teacher=RUN_DIR")
         if self.policy != "hybrid":
@@ -189,7 +188,7 @@ def train(cfg: DistillConfig, out: Path | str, resume: bool = False, progress: b
         return base.act(o, deterministic)
 
     # the teacher: rollouts over the base policy; its sampling continues where a resumed run stopped
-    teacher = PolicyRollouts(base_policy, env_kwargs(cfg.task, p), cfg.teacher_candidates, cfg.teacher_moves,
+    teacher = PolicyRollouts(base_policy, cfg.task.env_options(p), cfg.teacher_candidates, cfg.teacher_moves,
                              seed=cfg.run.seed, env_device=cfg.run.env_device or cfg.run.device, learner_device=device)
     teacher.decisions, teacher.sim_evals = counters["teacher_decisions"], counters["teacher_sim_evals"]
 

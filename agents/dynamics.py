@@ -194,7 +194,8 @@ class ModelObjective:
 class EpisodeTracker:
     """Which ropes of an env started a new episode, or moved, since the last call: read from the env's step
     counters (0 after a reset). A planner resets a new rope's warm start and plans only for ropes that moved (in an
-    evaluation wave a finished rope stays where it ended and keeps its last action)."""
+    evaluation wave a finished rope stays where it ended and keeps its last action). Used by ``ModelPlanner`` and by
+    the RSSM's ``agents.rssm.LatentPlanner``."""
 
     def __init__(self, core):
         self.core = core

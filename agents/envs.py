@@ -66,18 +66,7 @@ class TrainEnv:
         self.ep_return, self.ep_length = s["ep_return"].clone(), s["ep_length"].clone()
 
 
-def env_kwargs(task: TaskOptions, params: CableParams) -> dict[str, Any]:
-    """The keyword arguments of ``BatchedShapeControl`` and of ``gym.make("DiffDLO/ShapeControl-v0", ...)`` for a
-    run's task (devices left out). ``max_episode_steps`` is the episode length, so gymnasium's time limit agrees."""
-    return dict(target=task.target, obs_type=task.obs, action_type=task.action, reward=task.reward,
-                max_steps=task.max_steps, success_tol=task.success_tol, params=params, image_size=task.image_size,
-                success_bonus=task.success_bonus, step_penalty=task.step_penalty, on_exit=task.on_exit,
-                exit_penalty=task.exit_penalty, curve_max_turn_deg=task.curve_max_turn_deg, mark_end=task.mark_end,
-                start=task.start, perception=task.perception,
-                perception_refine=task.perception_refine, max_episode_steps=task.max_steps or params.max_episode_steps)
-
-
 def make_env(task: TaskOptions, run: RunOptions, params: CableParams, num_envs: int) -> TrainEnv:
     """The training/evaluation env of a run: the task's options on the run's devices, with its resolved params."""
-    core = BatchedShapeControl(num_envs=num_envs, device=run.env_device or run.device, **env_kwargs(task, params))
+    core = BatchedShapeControl(num_envs, task.env_options(params), device=run.env_device or run.device)
     return TrainEnv(core, device=run.device)

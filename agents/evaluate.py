@@ -169,7 +169,7 @@ def evaluate_run(args: argparse.Namespace) -> int:
         env = TrainEnv(recorder, device=env.device)
         acting = policy.batched(env)
         if args.rollouts:
-            acting = PolicyRollouts(acting, policy.env_kwargs(), args.rollouts, args.rollout_moves, seed=seed,
+            acting = PolicyRollouts(acting, policy.env_options(), args.rollouts, args.rollout_moves, seed=seed,
                                     env_device=env.core.device, learner_device=env.device)
         t0 = time.perf_counter()
         result = evaluate(acting, env, episodes, seed=seed)

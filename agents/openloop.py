@@ -13,19 +13,9 @@ import torch
 from agents.buffer import as_dict
 from agents.dynamics import EnsembleDynamics, k_step_errors
 from agents.envs import make_env
-from agents.rssm import RSSM
+from agents.rssm import RSSM, decoded_positions
 from diffdlo.params import CableParams
-from diffdlo.task import COORDINATE_OBS, POINT_OBS
-
-
-def decoded_positions(model: RSSM, feat: torch.Tensor, obs_type: str, target: torch.Tensor | None = None):
-    """Rope node positions [m] (..., N, 2) decoded from features, for points (node_poses) or distance (+ target)."""
-    dec = model.decode(feat)
-    if obs_type in POINT_OBS:
-        return dec["node_poses"] / model.scale
-    if obs_type == "distance":
-        return dec["obs"] / model.scale + target
-    raise ValueError(f"no node positions in {obs_type!r} observations")
+from diffdlo.task import COORDINATE_OBS
 
 
 @torch.no_grad()

@@ -1,5 +1,5 @@
 """PlaNet (Hafner et al. 2019; thesis Chapter 3): learn a world model from replayed chunks and act by CEM planning
-through it. CleanRL-style: config -> model -> planner -> loop.
+through it. CleanRL-style: config -> the chosen world model and its planner -> loop.
 
     python -m agents.planet --out runs/planet                     # tuned: the ensemble on points, 10k env steps
     python -m agents.planet --preset rssm --obs image --action pixel --out runs/planet-rssm-image
@@ -9,23 +9,17 @@ Two world models (``model``):
   rope from the rope, the grasped node and the drag; planned through by ``agents.dynamics.ModelPlanner`` with the
   planners' cost (shape error of the predicted rope against the observed target). Points and node actions only.
 - "rssm" (params/planet-rssm.yaml; agents/rssm.py): PlaNet's recurrent state-space model, any observation, planned
-  in latent space by ``LatentPlanner`` below.
+  in latent space by ``agents.rssm.LatentPlanner`` (``LatentObjective``: minus the predicted rewards, or the decoded
+  rope's shape error).
 
-Data: the ONE shared replay storage (agents/buffer.py). Its chunk sampler returns L contiguous rows of one rope that
-never cross an episode end (an end only at the last row) nor the write head; the observation after the last row is
-added from ``ReplayBuffer.next_obs`` (the stored final observation where the episode ended there, so the success
-reward is learned), masked out only when that row is the newest one and its next observation is not written yet.
-The ensemble draws ``batch_size`` chunks per member.
+Data: the ONE shared replay storage (agents/buffer.py). ``ReplayBuffer.sample_sequences`` returns L contiguous rows
+of one rope that never cross an episode end (an end only at the last row) nor the write head, plus the observation
+after the last row (the stored final observation where the episode ended there, so the success reward is learned),
+masked out only when that row is the newest one and its next observation is not written yet. The ensemble draws
+``batch_size`` chunks per member.
 
 Loop: ``seed_episodes`` x max_steps env transitions of uniform random actions, then ``updates_per_train`` model
 updates every ``train_every`` env transitions, collecting with the planner plus Gaussian exploration noise.
-
-Latent planning (RSSM): the project's generic ``planners.cem.CEM`` (categorical over the grasped node for node
-actions, Gaussians for the drags) minimises ``LatentObjective``: from the current posterior state, roll the prior
-mean forward under each candidate sequence and return minus the sum of predicted rewards (``plan_objective:
-reward``, PlaNet) or, for points/distance observations, the shape error of the decoded rope against the (observed)
-target (``plan_objective: shape``, the planners' cost in planners/objective.py). The prior MEAN is used so that a
-candidate's cost is deterministic, as CEM's elitism assumes.
 """
 from __future__ import annotations
 
@@ -36,19 +30,18 @@ from typing import Any
 
 import torch
 
-from agents.buffer import ReplayBuffer, as_dict, index_obs
+from agents.buffer import ReplayBuffer
 from agents.checkpoints import replay_rows
 from agents.cli import run_cli
-from agents.config import RunOptions, TaskOptions, check_layer_sizes, check_ranges, check_types, part
+from agents.config import SECTIONS, RunOptions, TaskOptions, part
 from agents.logs import fmt_postfix
 from agents.run import Run, learner
-from agents.dynamics import EnsembleDynamics, EpisodeTracker, ModelPlanner, check_settings
-from agents.openloop import decoded_positions, open_loop_eval, openloop_row, plot_open_loop
-from agents.rssm import RSSM
+from agents.dynamics import EnsembleDynamics, ModelPlanner, check_settings
+from agents.openloop import open_loop_eval, openloop_row, plot_open_loop
+from agents.rssm import RSSM, LatentPlanner
+from diffdlo.checks import check_fields, option
 from diffdlo.params import CableParams
-from diffdlo.rewards import shape_error
 from diffdlo.task import COORDINATE_OBS, POINT_OBS
-from planners.cem import CEM, optimize_together
 
 
 # ====================================================================== config (defaults: params/planet.yaml)
@@ -58,75 +51,68 @@ class PlaNetConfig:
     run: RunOptions = part(RunOptions, total_steps=100_000, eval_every=10_000, checkpoint_every=10_000,
                            log_every=25)          # log_every: model updates
     # model: "ensemble" (agents/dynamics.py, points only) or "rssm" (agents/rssm.py, PlaNet's)
-    model: str = "ensemble"
-    members: int = 5
-    model_hidden: list = dataclasses.field(default_factory=lambda: [200, 200, 200])
-    augment: list = dataclasses.field(default_factory=lambda: ["mirror", "reverse"])
-    frame: str = "grasp"
-    propagation: str = "members"
-    running_weight: float = 0.5
-    deter: int = 200
-    stoch: int = 30
-    hidden: int = 200
-    embed: int = 200
-    image_embed: int = 1024
-    cnn_channels: list = dataclasses.field(default_factory=lambda: [32, 64, 64])
-    deconv_channels: list = dataclasses.field(default_factory=lambda: [64, 32, 16])
-    min_std: float = 0.1
-    obs_std: float = 0.02
-    free_nats: float = 3.0
+    model: str = option("ensemble", choices=("ensemble", "rssm"), help='"ensemble" (points only) or "rssm"')
+    # the ensemble (agents/dynamics.py); augment, frame and propagation are checked by dynamics.check_settings
+    members: int = option(5, "[1, inf)", help="ensemble: its MLPs")
+    model_hidden: list = option(factory=lambda: [200, 200, 200], layers=True, help="ensemble: each MLP's hidden layers")
+    augment: list = option(factory=lambda: ["mirror", "reverse"], help="ensemble: the symmetries trained on")
+    frame: str = option("grasp", help='ensemble: "grasp" or "centroid", the frame each move is predicted in')
+    propagation: str = option("members", help='ensemble: "members" or "mean", how the planning cost uses it')
+    running_weight: float = option(0.5, "[0, inf)",
+                                   help="ensemble's planning cost: weight of the mean intermediate shape error")
+    # the RSSM (agents/rssm.py)
+    deter: int = option(200, "[1, inf)", help="rssm: deterministic state size")
+    stoch: int = option(30, "[1, inf)", help="rssm: stochastic state size")
+    hidden: int = option(200, "[1, inf)", help="rssm: hidden layer width")
+    embed: int = option(200, "[1, inf)", help="rssm: observation embedding size (points, distance)")
+    image_embed: int = option(1024, "[1, inf)", help="rssm: observation embedding size (images)")
+    cnn_channels: list = option(factory=lambda: [32, 64, 64], layers=True, help="rssm: the image encoder's channels")
+    deconv_channels: list = option(factory=lambda: [64, 32, 16], layers=True,
+                                   help="rssm: the image decoder's channels")
+    min_std: float = option(0.1, "(0, inf)", help="rssm: the stochastic state's smallest std")
+    obs_std: float = option(0.02, "(0, inf)", help="rssm: the std of float observations' likelihood")
+    free_nats: float = option(3.0, "[0, inf)", help="rssm: the KL term is constant below this")
     # learning
-    lr: float = 1e-3
-    adam_eps: float = 1e-4
-    grad_clip: float = 1000.0
-    batch_size: int = 50
-    chunk_length: int = 16
-    buffer_size: int = 1_000_000
-    seed_episodes: int = 40
-    train_every: int = 250
-    updates_per_train: int = 100
+    lr: float = option(1e-3, "(0, inf)", help="the model's Adam")
+    adam_eps: float = option(1e-4, "(0, inf)", help="the model's Adam eps")
+    grad_clip: float = option(1000.0, "(0, inf)", help="gradient norm clip")
+    batch_size: int = option(50, "[1, inf)", help="chunks per update (per member for the ensemble)")
+    chunk_length: int = option(16, "[1, inf)", help="rows per chunk")
+    buffer_size: int = option(1_000_000, "[1, inf)", help="transitions kept")
+    seed_episodes: int = option(40, "[0, inf)", help="episodes of uniform random actions before training")
+    train_every: int = option(250, "[1, inf)", help="env transitions between training phases")
+    updates_per_train: int = option(100, "[1, inf)", help="model updates per training phase")
     # planning
-    horizon: int = 3
-    candidates: int = 300
-    elites: int = 30
-    iterations: int = 5
-    plan_objective: str = "reward"
-    explore_noise: float = 0.15
+    horizon: int = option(3, "[1, inf)", help="CEM: moves planned")
+    candidates: int = option(300, "[1, inf)", help="CEM: sequences per iteration")
+    elites: int = option(30, "[1, inf)", help="CEM: sequences refit to (at most candidates)")
+    iterations: int = option(5, "[1, inf)", help="CEM: iterations per move")
+    plan_objective: str = option("reward", choices=("reward", "shape"), says="'reward' or 'shape'",
+                                 help='"reward" (predicted rewards, PlaNet) or "shape" (decoded rope\'s shape error)')
+    explore_noise: float = option(0.15, "[0, inf)", help="std of the Gaussian noise added to planned actions")
     # open-loop prediction evaluation
-    openloop_episodes: int = 32
-    openloop_context: int = 5
-    openloop_seed: int = 20_000
+    openloop_episodes: int = option(32, "[1, inf)", help="episodes of the open-loop prediction evaluation")
+    openloop_context: int = option(5, "[0, inf)", help="its observed moves before predicting")
+    openloop_seed: int = option(20_000, help="its first episode's seed")
 
     def check(self) -> None:
         self.task.check()
         self.run.check()
-        if self.model not in ("ensemble", "rssm"):
-            raise ValueError(f"unknown model {self.model!r}: use 'ensemble' or 'rssm'")
         if self.model == "ensemble":
             if self.task.obs not in POINT_OBS or self.task.action != "node":
-                raise ValueError(f"model 'ensemble' predicts node positions from node actions: it needs obs 'points' or 'perceived' "
-                                 f"and action 'node', got obs {self.task.obs!r} and action {self.task.action!r} "
-                                 "(use --preset rssm)")
+                raise ValueError(f"model 'ensemble' predicts node positions from node actions: it needs obs "
+                                 f"'points' or 'perceived' and action 'node', got obs {self.task.obs!r} and action "
+                                 f"{self.task.action!r} (use --preset rssm)")
             check_settings(self.members, self.model_hidden, self.augment, self.frame, self.propagation)
-        if self.plan_objective not in ("reward", "shape"):
-            raise ValueError(f"plan_objective must be 'reward' or 'shape', got {self.plan_objective!r}")
+        check_fields(self, skip=SECTIONS)   # after check_settings, whose message names the ensemble's layer sizes
         if self.plan_objective == "shape" and self.task.obs not in COORDINATE_OBS:
             raise ValueError("plan_objective 'shape' needs points or distance observations, or perceived points (it "
                              "decodes node positions)")
-        check_types(self)
-        for key in ("model_hidden", "cnn_channels", "deconv_channels"):
-            check_layer_sizes(key, getattr(self, key))
-        at_least_one = ("members", "deter", "stoch", "hidden", "embed", "image_embed", "batch_size", "chunk_length",
-                        "buffer_size", "train_every", "updates_per_train", "horizon", "candidates", "elites",
-                        "iterations", "openloop_episodes")
-        check_ranges(self, {**{k: "[1, inf)" for k in at_least_one}, "running_weight": "[0, inf)",
-                            "min_std": "(0, inf)", "obs_std": "(0, inf)", "free_nats": "[0, inf)", "lr": "(0, inf)",
-                            "adam_eps": "(0, inf)", "grad_clip": "(0, inf)", "seed_episodes": "[0, inf)",
-                            "explore_noise": "[0, inf)", "openloop_context": "[0, inf)"})
         if self.elites > self.candidates:
             raise ValueError(f"elites must be at most candidates ({self.candidates}), got {self.elites}")
 
 
+# ====================================================================== the world model and its planner
 def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int, p: CableParams) -> RSSM | EnsembleDynamics:
     if cfg.model == "ensemble":
         return EnsembleDynamics(p, cfg.members, cfg.model_hidden, cfg.augment, cfg.frame).to(cfg.run.device)
@@ -136,139 +122,8 @@ def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int, p: CableParams) ->
                 min_std=cfg.min_std, obs_std=cfg.obs_std, free_nats=cfg.free_nats).to(cfg.run.device)
 
 
-# ====================================================================== planning in latent space
-class LatentObjective:
-    """cost(actions) from latent states through the prior mean: R ropes' states (R, ...) and candidates
-    (R, C, H, A) -> (R, C), all in one batched model call; or one rope's state (1, ...) and (C, H, A) -> (C,).
-    ``target`` (R, N, 2) or (N, 2): the ropes' targets for the "shape" cost."""
-
-    def __init__(self, model: RSSM, state: dict[str, torch.Tensor], kind: str = "reward", obs_type: str = "points",
-                 target: torch.Tensor | None = None):
-        self.model, self.state, self.kind, self.obs_type = model, state, kind, obs_type
-        self.target = None if target is None else target.reshape(-1, *target.shape[-2:])
-        self.calls = 0
-
-    @torch.no_grad()
-    def __call__(self, actions: torch.Tensor) -> torch.Tensor:
-        single = actions.dim() == 3
-        x = actions[None] if single else actions
-        r, c = x.shape[:2]
-        dev = self.state["h"].device
-        st = {k: v[:, None].expand(r, c, *v.shape[1:]).reshape(r * c, *v.shape[1:]) for k, v in self.state.items()}
-        traj = self.model.imagine(st, x.reshape(r * c, *x.shape[2:]).to(dev, torch.float32), sample=False)
-        feat = torch.stack([RSSM.feature(s) for s in traj], 1)                  # (R C, H, F)
-        self.calls += 1
-        if self.kind == "reward":
-            cost = -self.model.reward(feat).sum(1)
-        else:
-            tgt = self.target[:, None].expand(r, c, *self.target.shape[1:]).reshape(r * c, *self.target.shape[1:])
-            pos = decoded_positions(self.model, feat[:, -1], self.obs_type, tgt)
-            cost = shape_error(pos, tgt)
-        cost = cost.view(r, c)
-        return cost[0] if single else cost
-
-
-class LatentPlanner:
-    """The acting policy: filters the belief state of every rope and plans each rope's next move with its own
-    (warm-started) CEM. ``agents.dynamics.EpisodeTracker`` tells it which ropes started a new episode (so it works
-    inside ``agents.evaluation.evaluate`` too) and which did not move (finished in an evaluation wave: they keep
-    their last action without planning)."""
-
-    def __init__(self, model: RSSM, cfg: PlaNetConfig, core, seed: int):
-        self.model, self.cfg, self.core = model, cfg, core
-        self.b, self.A = core.num_envs, core.action_dim
-        discrete = {0: core.params.n_nodes} if cfg.task.action == "node" else None
-        self.cems = [CEM(self.A, cfg.horizon, cfg.candidates, cfg.elites, cfg.iterations, discrete=discrete,
-                         generator=torch.Generator().manual_seed(seed + i), dtype=torch.float32)
-                     for i in range(self.b)]
-        self.state: dict[str, torch.Tensor] | None = None
-        self.prev_action = torch.zeros(self.b, self.A, device=cfg.run.device)
-        self.tracker = EpisodeTracker(core)
-
-    def state_dict(self) -> dict[str, Any]:
-        """Belief, last action and every rope's CEM (distribution, warm start, generator): a resumed run plans
-        exactly as the uninterrupted one."""
-        return {"state": None if self.state is None else {k: v.clone() for k, v in self.state.items()},
-                "prev_action": self.prev_action.clone(), "last_steps": self.tracker.last_steps.clone(),
-                "cems": [c.state_dict() for c in self.cems]}
-
-    def load_state_dict(self, s: dict[str, Any]) -> None:
-        if len(s["cems"]) != self.b:
-            raise ValueError(f"planner state for {len(s['cems'])} ropes, this planner has {self.b}")
-        dev = self.cfg.run.device
-        self.state = None if s["state"] is None else {k: v.to(dev) for k, v in s["state"].items()}
-        self.prev_action = s["prev_action"].to(dev)
-        self.tracker.last_steps = s["last_steps"].clone()
-        for c, cs in zip(self.cems, s["cems"]):
-            c.load_state_dict(cs)
-
-    @torch.no_grad()
-    def __call__(self, obs: Any, deterministic: bool = True) -> torch.Tensor:
-        m, dev = self.model, self.cfg.run.device
-        new, moved = self.tracker.update()
-        emb = m.embed(obs)
-        sample = not deterministic      # evaluation filters with the posterior mean
-        post, _ = m.obs_step(self.state if self.state is not None else m.initial(self.b, dev), self.prev_action, emb,
-                             sample)
-        if self.state is None or bool(new.any()):
-            fresh, _ = m.obs_step(None, None, emb, sample)
-            nd = new.to(dev)
-            if self.state is None:
-                post = fresh
-            else:
-                post = {k: torch.where(nd[:, None], fresh[k], post[k]) for k in post}
-            for i in new.nonzero().flatten().tolist():
-                self.cems[i].reset()
-        if self.state is not None:     # ropes that did not move keep their state
-            keep = (~moved).to(dev)
-            post = {k: torch.where(keep[:, None], self.state[k], post[k]) for k in post}
-        self.state = post
-        action = self.prev_action.clone()
-        target = None
-        if self.cfg.plan_objective == "shape":
-            target = self.core.get_state(generators=False).target.to(dev).float()
-        rows = moved.nonzero().flatten().tolist()
-        if rows:                                   # every moving rope's CEM in lockstep, one model call per iteration
-            idx = torch.tensor(rows, device=dev)
-            obj = LatentObjective(m, {k: v[idx] for k, v in post.items()}, self.cfg.plan_objective,
-                                  self.cfg.task.obs, None if target is None else target[idx])
-            bests = optimize_together([self.cems[i] for i in rows], obj)
-            for i, (best, _) in zip(rows, bests):
-                self.cems[i].shift()
-                action[i] = best[0].to(dev)
-        if not deterministic and self.cfg.explore_noise > 0:
-            noise = self.cfg.explore_noise * torch.randn(self.b, self.A, device=dev)
-            action = torch.where(moved.to(dev)[:, None], (action + noise).clamp(0.0, 1.0), action)
-        self.prev_action = action
-        return action
-
-
 def make_planner(model: RSSM | EnsembleDynamics, cfg: PlaNetConfig, core, seed: int):
     return ModelPlanner(model, cfg, core, seed) if cfg.model == "ensemble" else LatentPlanner(model, cfg, core, seed)
-
-
-# ====================================================================== data
-def sample_sequences(rb: ReplayBuffer, batch: int, length: int, generator: torch.Generator | None = None):
-    """Chunks of ``length`` rows plus the observation after the last row: obs (B, L+1, ...), actions (B, L, A),
-    rewards (B, L), mask (B, L+1) (0 only for that extra observation where it is not written yet)."""
-    c = rb.sample_chunks(batch, length, generator)
-    t_last, e = c["t"][:, -1], c["e"][:, -1]
-    ended = rb.terminated[t_last, e] | rb.truncated[t_last, e]
-    head = (t_last == (rb.pos - 1) % rb.capacity)
-    nxt = rb.next_obs(t_last, e) if not bool((head & ~ended).any()) else _safe_next(rb, t_last, e, head & ~ended)
-    obs = {k: torch.cat([v, nxt[k][:, None]], 1) for k, v in as_dict(c["obs"]).items()}
-    mask = torch.ones(batch, length + 1, device=rb.device)
-    mask[:, -1] = (~(head & ~ended)).float()
-    return (obs if rb.is_dict else obs["obs"]), c["action"], c["reward"], mask
-
-
-def _safe_next(rb: ReplayBuffer, t: torch.Tensor, e: torch.Tensor, unknown: torch.Tensor):
-    nxt = index_obs(rb.obs, (t + 1) % rb.capacity, e)
-    for i in (~unknown).nonzero().flatten().tolist():
-        one = rb.next_obs(t[i:i + 1], e[i:i + 1])
-        for k in nxt:
-            nxt[k][i] = one[k][0]
-    return nxt
 
 
 # ====================================================================== training loop
@@ -314,8 +169,8 @@ def train(cfg: PlaNetConfig, out: Path | str, resume: bool = False, progress: bo
         # ---- learn: the phase started by the last step
         while pending:
             run.stop_if_requested(parts_now)
-            o, a, r, m = sample_sequences(rb, chunks, cfg.chunk_length)
-            L = model.loss(o, a, r, m)
+            seq = rb.sample_sequences(chunks, cfg.chunk_length)
+            L = model.loss(seq["obs"], seq["action"], seq["reward"], seq["mask"])
             opt.zero_grad()
             L["loss"].backward()
             gnorm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)

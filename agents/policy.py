@@ -31,8 +31,8 @@ import torch
 
 from agents import config as config_lib
 from agents.checkpoints import CHECKPOINT, load_checkpoint
-from agents.envs import TrainEnv, env_kwargs, make_env
-from diffdlo.envs import BatchedShapeControl
+from agents.envs import TrainEnv, make_env
+from diffdlo.envs import BatchedShapeControl, EnvOptions
 
 # algo -> (its module, its config class, the checkpoint part holding the acting network's weights)
 LEARNERS = {"sac": ("agents.sac", "SACConfig", "actor"),
@@ -163,8 +163,7 @@ class Policy:
         self.algo, self.config, self.step, self.checkpoint = algo, cfg, int(step), checkpoint
         self.device = torch.device(cfg.run.device)
         try:
-            self._one_rope = BatchedShapeControl(num_envs=1, device=cfg.run.env_device or cfg.run.device,
-                                                 **env_kwargs(cfg.task, cfg.task.cable_params()))
+            self._one_rope = BatchedShapeControl(1, cfg.task.env_options(), device=cfg.run.env_device or cfg.run.device)
         except (ValueError, OSError) as exc:
             raise ValueError(f"{checkpoint}: the run's task cannot be rebuilt here: {exc}") from None
         self._one_rope.reset(seed=0)                  # a real rope: the planners' state checks need one
@@ -176,9 +175,13 @@ class Policy:
         self._moves = 0                                                   # since reset(): the one-rope env's steps
 
     # ------------------------------------------------------------------ envs of the run's task
+    def env_options(self) -> EnvOptions:
+        """The run's task as the env's options (``BatchedShapeControl(B, policy.env_options())``)."""
+        return self.config.task.env_options()
+
     def env_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for ``gym.make("DiffDLO/ShapeControl-v0", ...)``: the run's task."""
-        return env_kwargs(self.config.task, self.config.task.cable_params())
+        return self.env_options().keywords()
 
     def make_env(self, num_envs: int | None = None, target: Any = None) -> TrainEnv:
         """The run's evaluation env (``num_envs`` default min(eval_episodes, 32), as the run's own), optionally with

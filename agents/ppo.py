@@ -39,9 +39,10 @@ import torch.nn as nn
 from agents import hybrid
 from agents.buffer import ReplayBuffer
 from agents.cli import run_cli
-from agents.config import InputOptions, RunOptions, TaskOptions, check_model_free, check_ranges, part
+from agents.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
 from agents.networks import Features, mlp, shift_images
 from agents.run import Run, learner
+from diffdlo.checks import option
 
 
 # ====================================================================== config (defaults: params/ppo.yaml)
@@ -51,27 +52,24 @@ class PPOConfig:
     run: RunOptions = part(RunOptions, total_steps=1_000_000, eval_every=20_000, checkpoint_every=50_000, log_every=1)
     inputs: InputOptions = part(InputOptions)
     # checkpoints and evaluations are checked after each rollout + update; log_every counts rollouts
-    policy: str = "gaussian"              # "hybrid" | "gaussian"
-    anneal_lr: bool = False               # lr decays linearly to 0 over total_steps (CleanRL anneal_lr)
-    lr: float = 3e-4
-    n_steps: int = 2048                  # rows per rollout (per env)
-    batch_size: int = 64
-    n_epochs: int = 10
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    clip_range: float = 0.2
-    ent_coef: float = 0.0
-    vf_coef: float = 0.5
-    max_grad_norm: float = 0.5
-    normalize_advantage: bool = True
-    log_std_init: float = -0.6931471805599453   # log 0.5
-    hidden: list = dataclasses.field(default_factory=lambda: [64, 64])
+    policy: str = option("gaussian", choices=POLICIES, help='"hybrid" (node categorical + drag) | "gaussian"')
+    anneal_lr: bool = option(False, help="lr decays linearly to 0 over total_steps (CleanRL anneal_lr)")
+    lr: float = option(3e-4, "(0, inf)", help="Adam's learning rate")
+    n_steps: int = option(2048, "[1, inf)", help="rows per rollout (per env)")
+    batch_size: int = option(64, "[1, inf)", help="transitions per minibatch")
+    n_epochs: int = option(10, "[1, inf)", help="passes over each rollout")
+    gamma: float = option(0.99, "[0, 1]", help="discount")
+    gae_lambda: float = option(0.95, "[0, 1]", help="GAE's lambda")
+    clip_range: float = option(0.2, "(0, inf)", help="the surrogate's ratio clip")
+    ent_coef: float = option(0.0, "[0, inf)", help="entropy bonus weight")
+    vf_coef: float = option(0.5, "[0, inf)", help="value loss weight")
+    max_grad_norm: float = option(0.5, "(0, inf)", help="gradient norm clip")
+    normalize_advantage: bool = option(True, help="advantages normalized per minibatch")
+    log_std_init: float = option(-0.6931471805599453, "(-inf, inf)", help="the Gaussian's initial log std (log 0.5)")
+    hidden: list = option(factory=lambda: [64, 64], layers=True, help="the policy's and value's hidden layers")
 
     def check(self) -> None:
         check_model_free(self)
-        check_ranges(self, {"lr": "(0, inf)", "n_steps": "[1, inf)", "batch_size": "[1, inf)", "n_epochs": "[1, inf)",
-                            "gamma": "[0, 1]", "gae_lambda": "[0, 1]", "clip_range": "(0, inf)", "ent_coef": "[0, inf)",
-                            "vf_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "log_std_init": "(-inf, inf)"})
 
 
 # ====================================================================== networks

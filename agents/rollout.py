@@ -10,7 +10,7 @@ episode where that copy succeeded within ``moves`` moves — the learned policy 
 its own value estimate, without any value network (a learned V, scored one move ahead, was tried first: its errors
 are what the argmax finds, and it took more moves than the policy alone; docs/AGENTS.md).
 
-    acting = PolicyRollouts(policy, env_kwargs, candidates=32, moves=20)   # policy(obs, deterministic) -> actions
+    acting = PolicyRollouts(policy, options, candidates=32, moves=20)      # policy(obs, deterministic) -> actions
     actions = acting(obs)                                                  # (B, A): one improved move per rope
 
 The copies of every rope of the batch are simulated together (B x candidates ropes, one batched move per rollout
@@ -26,7 +26,7 @@ from typing import Any, Callable
 import torch
 
 from agents.envs import TrainEnv
-from diffdlo.envs import BatchedShapeControl
+from diffdlo.envs import BatchedShapeControl, EnvOptions
 
 ROLLOUT_OBS = ("points",)        # observations that show the rope and the target, so the simulator can copy them
 
@@ -48,18 +48,19 @@ def check_rollout_obs(obs_type: str) -> None:
 class PolicyRollouts:
     """``acting(obs, deterministic=True) -> (B, A)``: the rollout-improved moves of a batched ``policy(obs,
     deterministic)`` (a learner's acting network, as ``agents.policy`` builds it) on observations of the task
-    ``env_kwargs`` (BatchedShapeControl's keyword arguments; obs "points"). ``seed``: the candidates are sampled from
-    a generator seeded with it (the same observations give the same moves)."""
+    ``options`` (an EnvOptions, or a dict of its keyword arguments; obs "points"). ``seed``: the candidates are
+    sampled from a generator seeded with it (the same observations give the same moves)."""
 
-    def __init__(self, policy: Callable[[Any, bool], torch.Tensor], env_kwargs: dict[str, Any], candidates: int = 32,
-                 moves: int = 20, seed: int = 0, env_device: str | torch.device = "cpu",
+    def __init__(self, policy: Callable[[Any, bool], torch.Tensor], options: EnvOptions | dict[str, Any],
+                 candidates: int = 32, moves: int = 20, seed: int = 0, env_device: str | torch.device = "cpu",
                  learner_device: str | torch.device | None = None):
         if int(candidates) < 1:
             raise ValueError(f"rollout candidates must be >= 1, got {candidates}")
         if int(moves) < 0:
             raise ValueError(f"rollout moves must be >= 0, got {moves}")
-        check_rollout_obs(env_kwargs.get("obs_type", "points"))
-        self.policy, self.env_kwargs = policy, dict(env_kwargs)
+        self.options = options if isinstance(options, EnvOptions) else EnvOptions(**options)
+        check_rollout_obs(self.options.obs_type)
+        self.policy = policy
         self.candidates, self.moves, self.seed = int(candidates), int(moves), int(seed)
         self.env_device, self.learner_device = env_device, learner_device
         self._copies: TrainEnv | None = None
@@ -68,7 +69,7 @@ class PolicyRollouts:
     def _env(self, n: int) -> TrainEnv:
         """The simulator's copies: one env of n ropes, kept while the batch size stays."""
         if self._copies is None or self._copies.num_envs != n:
-            core = BatchedShapeControl(n, device=self.env_device, **self.env_kwargs)
+            core = BatchedShapeControl(n, self.options, device=self.env_device)
             core.reset(seed=0)                       # set_state needs a first state; every rope is overwritten
             self._copies = TrainEnv(core, device=self.learner_device)
         return self._copies

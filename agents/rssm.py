@@ -1,4 +1,5 @@
-"""PlaNet's recurrent state-space model (Hafner et al. 2019; thesis Chapter 3): the world model of agents/planet.py.
+"""PlaNet's recurrent state-space model (Hafner et al. 2019; thesis Chapter 3), a world model of agents/planet.py
+(``model: rssm``), and its latent planner.
 
 State s_t = (h_t, z_t): a deterministic GRU state h_t and a diagonal-Gaussian stochastic latent z_t.
 
@@ -17,6 +18,14 @@ and decoded by an MLP; uint8 images (image, target_image stacked along channels)
 NatureCNN (``agents.networks.ObsEncoder``) and decoded by a transposed-conv decoder to pixels in [-0.5, 0.5].
 Node actions enter the model as one-hot(node) + the two drags (the dynamics depend on which node is grasped, and
 the env rounds a0 to a node anyway); pixel actions enter as they are.
+
+Latent planning: the project's generic ``planners.cem.CEM`` (categorical over the grasped node for node actions,
+Gaussians for the drags) minimises ``LatentObjective``: from the current posterior state, roll the prior mean forward
+under each candidate sequence and return minus the sum of predicted rewards (``plan_objective: reward``, PlaNet) or,
+for points/distance observations, the shape error of the decoded rope against the (observed) target
+(``plan_objective: shape``, the planners' cost in planners/objective.py). The prior MEAN is used so that a
+candidate's cost is deterministic, as CEM's elitism assumes. ``LatentPlanner`` filters every rope's belief and plans
+its next move, all ropes' CEMs in lockstep.
 """
 from __future__ import annotations
 
@@ -28,8 +37,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from agents.dynamics import EpisodeTracker
 from agents.networks import ObsEncoder, mlp
-from diffdlo.task import decode_node
+from diffdlo.rewards import shape_error
+from diffdlo.task import POINT_OBS, decode_node
+from planners.cem import CEM, optimize_together
 
 State = dict[str, torch.Tensor]   # {"h": (..., D), "z": (..., S), "mean": (..., S), "std": (..., S)}
 
@@ -231,3 +243,120 @@ class RSSM(nn.Module):
         kl_mean = (kl * mask).sum() / mask.sum().clamp_min(1)
         return {"loss": recon + kl_loss + reward_loss, "recon": recon, "kl": kl_mean, "kl_loss": kl_loss,
                 "reward_loss": reward_loss, "reward_mae": reward_mae, "last_state": posts[-1]}
+
+
+def decoded_positions(model: RSSM, feat: torch.Tensor, obs_type: str, target: torch.Tensor | None = None):
+    """Rope node positions [m] (..., N, 2) decoded from features, for points (node_poses) or distance (+ target)."""
+    dec = model.decode(feat)
+    if obs_type in POINT_OBS:
+        return dec["node_poses"] / model.scale
+    if obs_type == "distance":
+        return dec["obs"] / model.scale + target
+    raise ValueError(f"no node positions in {obs_type!r} observations")
+
+
+# ====================================================================== planning in latent space
+class LatentObjective:
+    """cost(actions) from latent states through the prior mean: R ropes' states (R, ...) and candidates
+    (R, C, H, A) -> (R, C), all in one batched model call; or one rope's state (1, ...) and (C, H, A) -> (C,).
+    ``target`` (R, N, 2) or (N, 2): the ropes' targets for the "shape" cost."""
+
+    def __init__(self, model: RSSM, state: dict[str, torch.Tensor], kind: str = "reward", obs_type: str = "points",
+                 target: torch.Tensor | None = None):
+        self.model, self.state, self.kind, self.obs_type = model, state, kind, obs_type
+        self.target = None if target is None else target.reshape(-1, *target.shape[-2:])
+        self.calls = 0
+
+    @torch.no_grad()
+    def __call__(self, actions: torch.Tensor) -> torch.Tensor:
+        single = actions.dim() == 3
+        x = actions[None] if single else actions
+        r, c = x.shape[:2]
+        dev = self.state["h"].device
+        st = {k: v[:, None].expand(r, c, *v.shape[1:]).reshape(r * c, *v.shape[1:]) for k, v in self.state.items()}
+        traj = self.model.imagine(st, x.reshape(r * c, *x.shape[2:]).to(dev, torch.float32), sample=False)
+        feat = torch.stack([RSSM.feature(s) for s in traj], 1)                  # (R C, H, F)
+        self.calls += 1
+        if self.kind == "reward":
+            cost = -self.model.reward(feat).sum(1)
+        else:
+            tgt = self.target[:, None].expand(r, c, *self.target.shape[1:]).reshape(r * c, *self.target.shape[1:])
+            pos = decoded_positions(self.model, feat[:, -1], self.obs_type, tgt)
+            cost = shape_error(pos, tgt)
+        cost = cost.view(r, c)
+        return cost[0] if single else cost
+
+
+class LatentPlanner:
+    """The acting policy: filters the belief state of every rope and plans each rope's next move with its own
+    (warm-started) CEM. ``agents.dynamics.EpisodeTracker`` tells it which ropes started a new episode (so it works
+    inside ``agents.evaluation.evaluate`` too) and which did not move (finished in an evaluation wave: they keep
+    their last action without planning). ``cfg``: an ``agents.planet.PlaNetConfig`` with ``model: rssm``."""
+
+    def __init__(self, model: RSSM, cfg, core, seed: int):
+        self.model, self.cfg, self.core = model, cfg, core
+        self.b, self.A = core.num_envs, core.action_dim
+        discrete = {0: core.params.n_nodes} if cfg.task.action == "node" else None
+        self.cems = [CEM(self.A, cfg.horizon, cfg.candidates, cfg.elites, cfg.iterations, discrete=discrete,
+                         generator=torch.Generator().manual_seed(seed + i), dtype=torch.float32)
+                     for i in range(self.b)]
+        self.state: dict[str, torch.Tensor] | None = None
+        self.prev_action = torch.zeros(self.b, self.A, device=cfg.run.device)
+        self.tracker = EpisodeTracker(core)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Belief, last action and every rope's CEM (distribution, warm start, generator): a resumed run plans
+        exactly as the uninterrupted one."""
+        return {"state": None if self.state is None else {k: v.clone() for k, v in self.state.items()},
+                "prev_action": self.prev_action.clone(), "last_steps": self.tracker.last_steps.clone(),
+                "cems": [c.state_dict() for c in self.cems]}
+
+    def load_state_dict(self, s: dict[str, Any]) -> None:
+        if len(s["cems"]) != self.b:
+            raise ValueError(f"planner state for {len(s['cems'])} ropes, this planner has {self.b}")
+        dev = self.cfg.run.device
+        self.state = None if s["state"] is None else {k: v.to(dev) for k, v in s["state"].items()}
+        self.prev_action = s["prev_action"].to(dev)
+        self.tracker.last_steps = s["last_steps"].clone()
+        for c, cs in zip(self.cems, s["cems"]):
+            c.load_state_dict(cs)
+
+    @torch.no_grad()
+    def __call__(self, obs: Any, deterministic: bool = True) -> torch.Tensor:
+        m, dev = self.model, self.cfg.run.device
+        new, moved = self.tracker.update()
+        emb = m.embed(obs)
+        sample = not deterministic      # evaluation filters with the posterior mean
+        post, _ = m.obs_step(self.state if self.state is not None else m.initial(self.b, dev), self.prev_action, emb,
+                             sample)
+        if self.state is None or bool(new.any()):
+            fresh, _ = m.obs_step(None, None, emb, sample)
+            nd = new.to(dev)
+            if self.state is None:
+                post = fresh
+            else:
+                post = {k: torch.where(nd[:, None], fresh[k], post[k]) for k in post}
+            for i in new.nonzero().flatten().tolist():
+                self.cems[i].reset()
+        if self.state is not None:     # ropes that did not move keep their state
+            keep = (~moved).to(dev)
+            post = {k: torch.where(keep[:, None], self.state[k], post[k]) for k in post}
+        self.state = post
+        action = self.prev_action.clone()
+        target = None
+        if self.cfg.plan_objective == "shape":
+            target = self.core.get_state(generators=False).target.to(dev).float()
+        rows = moved.nonzero().flatten().tolist()
+        if rows:                                   # every moving rope's CEM in lockstep, one model call per iteration
+            idx = torch.tensor(rows, device=dev)
+            obj = LatentObjective(m, {k: v[idx] for k, v in post.items()}, self.cfg.plan_objective,
+                                  self.cfg.task.obs, None if target is None else target[idx])
+            bests = optimize_together([self.cems[i] for i in rows], obj)
+            for i, (best, _) in zip(rows, bests):
+                self.cems[i].shift()
+                action[i] = best[0].to(dev)
+        if not deterministic and self.cfg.explore_noise > 0:
+            noise = self.cfg.explore_noise * torch.randn(self.b, self.A, device=dev)
+            action = torch.where(moved.to(dev)[:, None], (action + noise).clamp(0.0, 1.0), action)
+        self.prev_action = action
+        return action

@@ -32,7 +32,7 @@ from tqdm import tqdm
 from agents.checkpoints import (CHECKPOINT, load_checkpoint, rng_state, save_checkpoint, seed_everything,
                                 set_rng_state, torch_threads)
 from agents.config import to_dict
-from agents.envs import env_kwargs, make_env
+from agents.envs import make_env
 from agents.evaluation import (episode_records, eval_row, evaluate, evaluate_heldout, heldout_envs,
                                write_results)
 from agents.logs import EpisodeStats, Logger, fmt_postfix
@@ -214,7 +214,7 @@ class Run:
         the policy's own evaluation is kept in results.json as "policy_alone", the rollouts' cost on the task's
         episodes (not the held-out ones') as "sim_evals_per_move"."""
         opts = self.cfg.run
-        acting = PolicyRollouts(policy, env_kwargs(self.cfg.task, self.params), opts.rollout_candidates,
+        acting = PolicyRollouts(policy, self.cfg.task.env_options(self.params), opts.rollout_candidates,
                                 opts.rollout_moves, seed=opts.eval_seed,
                                 env_device=opts.env_device or opts.device, learner_device=self.device)
         alone = {**eval_row(self.result), "episodes": episode_records(self.result["episodes"])}

@@ -40,9 +40,10 @@ from agents import hybrid
 from agents.buffer import ReplayBuffer
 from agents.checkpoints import replay_rows
 from agents.cli import run_cli
-from agents.config import InputOptions, RunOptions, TaskOptions, check_model_free, check_ranges, part
+from agents.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
 from agents.networks import Features, mlp, shift_images
 from agents.run import Run, learner
+from diffdlo.checks import option
 
 
 # ====================================================================== config (defaults: params/sac.yaml)
@@ -51,30 +52,26 @@ class SACConfig:
     task: TaskOptions = part(TaskOptions)
     run: RunOptions = part(RunOptions, total_steps=100_000, eval_every=5_000, checkpoint_every=10_000, log_every=100)
     inputs: InputOptions = part(InputOptions)
-    policy: str = "gaussian"              # "hybrid" | "gaussian"
-    lr: float = 3e-4
-    buffer_size: int = 1_000_000          # transitions (rows = buffer_size // num_envs)
-    batch_size: int = 256
-    tau: float = 0.005
-    gamma: float = 0.99
-    learning_starts: int = 100            # transitions of uniform random actions before learning
-    train_freq: int = 1                   # batched env steps between update phases
-    gradient_steps: int = 1               # updates per phase
-    ent_coef_init: float = 1.0
-    target_entropy: float | None = None   # None: -|A| (gaussian) or -2 per node's drag (hybrid)
-    target_entropy_node: float = 0.5      # hybrid: target entropy of the node categorical [nats]
-    hidden: list = dataclasses.field(default_factory=lambda: [256, 256])
-    head_hidden: int = 256                # hybrid: width of the critic's per-node head
-    log_std_min: float = -5.0
-    log_std_max: float = 2.0
+    policy: str = option("gaussian", choices=POLICIES, help='"hybrid" (node categorical + drag) | "gaussian"')
+    lr: float = option(3e-4, "(0, inf)", help="Adam's learning rate (actor, critics, entropy coefficient)")
+    buffer_size: int = option(1_000_000, "[1, inf)", help="transitions (rows = buffer_size // num_envs)")
+    batch_size: int = option(256, "[1, inf)", help="transitions per update")
+    tau: float = option(0.005, "(0, 1]", help="the target critics' Polyak step")
+    gamma: float = option(0.99, "[0, 1]", help="discount")
+    learning_starts: int = option(100, "[0, inf)", help="transitions of uniform random actions before learning")
+    train_freq: int = option(1, "[1, inf)", help="batched env steps between update phases")
+    gradient_steps: int = option(1, "[1, inf)", help="updates per phase")
+    ent_coef_init: float = option(1.0, "(0, inf)", help="the entropy coefficient's first value")
+    target_entropy: float | None = option(None, "(-inf, inf)",
+                                          help="None: -|A| (gaussian) or -2 per node's drag (hybrid)")
+    target_entropy_node: float = option(0.5, "[0, inf)", help="hybrid: target entropy of the node categorical [nats]")
+    hidden: list = option(factory=lambda: [256, 256], layers=True, help="the actor's and critics' hidden layers")
+    head_hidden: int = option(256, "[1, inf)", help="hybrid: width of the critic's per-node head")
+    log_std_min: float = option(-5.0, "(-inf, inf)", help="the actor's log-std bounds")
+    log_std_max: float = option(2.0, "(-inf, inf)")
 
     def check(self) -> None:
         check_model_free(self)
-        check_ranges(self, {"lr": "(0, inf)", "buffer_size": "[1, inf)", "batch_size": "[1, inf)", "tau": "(0, 1]",
-                            "gamma": "[0, 1]", "learning_starts": "[0, inf)", "train_freq": "[1, inf)",
-                            "gradient_steps": "[1, inf)", "ent_coef_init": "(0, inf)", "target_entropy": "(-inf, inf)",
-                            "target_entropy_node": "[0, inf)", "head_hidden": "[1, inf)",
-                            "log_std_min": "(-inf, inf)", "log_std_max": "(-inf, inf)"})
         if not self.log_std_min < self.log_std_max:
             raise ValueError(f"log_std_min must be below log_std_max, got {self.log_std_min} and {self.log_std_max}")
 

@@ -36,7 +36,6 @@ import yaml
 from agents import apg
 from agents import config as config_lib
 from agents.checkpoints import torch_threads
-from agents.envs import env_kwargs
 from agents.policy import checkpoint_path, read_checkpoint
 from diffdlo.envs import BatchedShapeControl
 
@@ -79,7 +78,7 @@ def greedy_node_bound(cfg: apg.APGConfig, episodes: int, seed: int) -> tuple[flo
     """(success rate, mean moves of the successes) of the greedy node with a per-move optimized drag."""
     from planners.gradient import GradientPlanner
     p = cfg.task.cable_params()
-    env = BatchedShapeControl(num_envs=1, **env_kwargs(cfg.task, p))
+    env = BatchedShapeControl(1, cfg.task.env_options(p))
     planner = GradientPlanner(env.sim, iters=20, restarts=3, halvings=0)
     wins, moves = [], []
     for ep in range(episodes):
@@ -119,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(str(exc))
     with torch_threads(args.threads):
         p = cfg.task.cable_params()
-        env = BatchedShapeControl(num_envs=args.ropes, **env_kwargs(cfg.task, p))
+        env = BatchedShapeControl(args.ropes, cfg.task.env_options(p))
         obs, _ = env.reset(seed=args.seed)
         torch.manual_seed(0)
         actor = apg.Actor(obs, cfg, p.length, p.n_nodes)

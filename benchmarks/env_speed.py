@@ -72,8 +72,8 @@ def measure_batched(num_envs: int, steps: int, min_time: float, device: str, bac
         done += 1
     sync()
     wall = time.perf_counter() - t
-    return {"num_envs": num_envs, "device": device, "backend": backend, "uses_triton": env.sim.uses_triton(),
-            "uses_kernel": env.sim.uses_kernel(), "steps": done, "wall_s": round(wall, 3),
+    return {"num_envs": num_envs, "device": device, "backend": backend, "uses_triton": env.sim.engine == "triton",
+            "uses_kernel": env.sim.engine == "kernel", "steps": done, "wall_s": round(wall, 3),
             "env_steps_per_s": round(num_envs * done / wall, 2)}
 
 

@@ -1,8 +1,8 @@
 """How well can PlaNet's world model (agents/rssm.py) predict the rope, apart from the planning loop?
 
-Collect random-move episodes (uniform actions, the same distribution as ``planet.open_loop_eval``'s held-out
-ropes) into the shared replay buffer, train the RSSM on chunks exactly as ``agents/planet.py`` does, and print the
-open-loop node error after 1, 5 and 10 moves next to the "nothing moves" baseline at a few update counts.
+Collect random-move episodes (uniform actions, the same distribution as ``openloop.open_loop_eval``'s
+held-out ropes) into the shared replay buffer, train the RSSM on chunks exactly as ``agents/planet.py`` does, and
+print the open-loop node error after 1, 5 and 10 moves next to the "nothing moves" baseline at a few update counts.
 
     python benchmarks/planet_model.py --updates 2000            # ~5 min on one CPU core
     python benchmarks/planet_model.py --updates 4000 --set obs_std=0.01
@@ -77,8 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     chunks = cfg.batch_size * (cfg.members if cfg.model == "ensemble" else 1)
 
     def update() -> dict[str, torch.Tensor]:
-        o, a, r, m = planet.sample_sequences(rb, chunks, cfg.chunk_length)
-        loss = model.loss(o, a, r, m)
+        seq = rb.sample_sequences(chunks, cfg.chunk_length)
+        loss = model.loss(seq["obs"], seq["action"], seq["reward"], seq["mask"])
         opt.zero_grad()
         loss["loss"].backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)

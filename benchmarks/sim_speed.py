@@ -83,7 +83,7 @@ def cuda_main(args) -> None:
     reference = diffdlo.Simulator(p, device=args.device, dtype=torch.float64, backend="torch")
     cpu = diffdlo.Simulator(p)                          # auto on the CPU: the C++ kernel where it builds
     print(f"device {torch.cuda.get_device_name(tri.device)}; CPU path: "
-          f"{'fused C++ kernel' if cpu.uses_kernel() else 'torch'} on {torch.get_num_threads()} threads")
+          f"{'fused C++ kernel' if cpu.engine == 'kernel' else 'torch'} on {torch.get_num_threads()} threads")
     header = (f"{'B':>6} {'triton st/s':>12} {'eager st/s':>11} {'cpu st/s':>10} {'x eager':>8} {'x cpu':>7} "
               f"{'tri sim s/s':>11} {'cpu sim s/s':>11} {'tri f+b s':>10} {'eag f+b s':>10} {'cpu f+b s':>10} "
               f"{'bwd/fwd':>7} {'f+b MB':>8} {'dev mm':>9} {'grad dev':>9}")
@@ -180,7 +180,7 @@ def main() -> None:
     fast = diffdlo.Simulator(p, device=args.device)
     eager = diffdlo.Simulator(p, device=args.device, backend="torch")
     reference = diffdlo.Simulator(p, device=args.device, dtype=torch.float64, backend="torch")
-    print(f"default path: {'fused C++ kernel' if fast.uses_kernel() else 'torch'} on {fast.device}, "
+    print(f"default path: {'fused C++ kernel' if fast.engine == 'kernel' else 'torch'} on {fast.device}, "
           f"{torch.get_num_threads()} threads")
     header = (f"{'B':>6} {'env steps/s':>12} {'eager':>9} {'ratio':>7} {'sim s/s':>9} {'eager':>8} {'ratio':>7} "
               f"{'dev move mm':>11} {'dev free mm':>11} {'bwd/fwd':>8}")

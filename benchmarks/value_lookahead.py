@@ -20,20 +20,20 @@ from typing import Any, Callable
 
 import torch
 
-from agents.envs import TrainEnv, env_kwargs
+from agents.envs import TrainEnv
 from agents.evaluation import evaluate
 from agents.policy import checkpoint_config, checkpoint_path, load_weights, read_checkpoint
 from agents.ppo import ActorCritic
 from agents.rollout import PolicyRollouts
-from diffdlo.envs import BatchedShapeControl
+from diffdlo.envs import BatchedShapeControl, EnvOptions
 
 
 class ValueLookahead:
     """``acting(obs) -> (1, A)``: the candidate maximising reward + gamma (1 - terminated) V(next observation)."""
 
-    def __init__(self, agent: ActorCritic, kwargs: dict[str, Any], candidates: int, gamma: float, seed: int = 0):
+    def __init__(self, agent: ActorCritic, options: EnvOptions, candidates: int, gamma: float, seed: int = 0):
         self.agent, self.candidates, self.gamma, self.seed, self.calls = agent, candidates, gamma, seed, 0
-        core = BatchedShapeControl(candidates, **kwargs)
+        core = BatchedShapeControl(candidates, options)
         core.reset(seed=0)
         self.copies = TrainEnv(core)
 
@@ -94,8 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, ValueError) as exc:
         ap.error(str(exc))
     torch.set_num_threads(1)
-    kwargs = env_kwargs(cfg.task, cfg.task.cable_params())
-    example = TrainEnv(BatchedShapeControl(1, **kwargs)).reset(seed=0)
+    options = cfg.task.env_options()
+    example = TrainEnv(BatchedShapeControl(1, options)).reset(seed=0)
     p = cfg.task.cable_params()
     agent = ActorCritic(example, 3, cfg, p.length, p.n_nodes)
     load_weights(agent, ck["agent"], path, "agent")
@@ -106,13 +106,14 @@ def main(argv: list[str] | None = None) -> int:
         with torch.no_grad():
             return agent.act(o, deterministic)
     rows = [("policy alone", alone)]
-    rows += [(f"value lookahead, {c} candidates", ValueLookahead(agent, kwargs, c, cfg.gamma)) for c in args.candidates]
+    rows += [(f"value lookahead, {c} candidates", ValueLookahead(agent, options, c, cfg.gamma))
+             for c in args.candidates]
     if args.rollouts:
-        rows.append((f"policy rollouts, {args.rollouts} x 20", PolicyRollouts(alone, kwargs, args.rollouts, 20, seed)))
+        rows.append((f"policy rollouts, {args.rollouts} x 20", PolicyRollouts(alone, options, args.rollouts, 20, seed)))
     print(f"{path} (gamma {cfg.gamma}), episodes {seed}..{seed + args.episodes - 1}:")
     for name, acting in rows:                           # one rope at a time: a call is one move's latency
         timed = Timed(acting)
-        episodes = evaluate(timed, TrainEnv(BatchedShapeControl(1, **kwargs)), args.episodes, seed=seed)["episodes"]
+        episodes = evaluate(timed, TrainEnv(BatchedShapeControl(1, options)), args.episodes, seed=seed)["episodes"]
         solved = [e["steps"] for e in episodes if e["success"]]
         mean = f"{sum(solved) / len(solved):.2f}" if solved else "-"
         print(f"  {name:34s} success {len(solved)}/{args.episodes}  moves {mean:>6s}  "

@@ -1,7 +1,8 @@
 """``python -m diffdlo --info``: what this installation runs on, for bug reports and for checking a setup.
 
 Prints the version, the simulator backend in use (the fused C++ kernel, or the eager torch path and why), the one on
-CUDA devices (the Triton kernels, or the eager path and why), the torch version, the devices, torch's threads and the folder the parameter files are read from.
+CUDA devices (the Triton kernels, or the eager path and why), the torch version, the devices, torch's threads and the
+folder the parameter files are read from. A Simulator's own choice is its ``engine`` (and ``why_not``).
 """
 from __future__ import annotations
 

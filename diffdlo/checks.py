@@ -37,12 +37,13 @@ def check_choice(name: str, v: Any, allowed: Sequence[Any]) -> None:
 
 
 def option(default: Any = MISSING, interval: str | None = None, *, choices: Sequence[Any] | None = None,
-           factory: Any = MISSING, layers: bool = False, help: str = "") -> Any:
+           factory: Any = MISSING, layers: bool = False, says: str | None = None, help: str = "") -> Any:
     """A dataclass field with its rule beside it: ``interval`` for a number ("[1, inf)"; None values pass),
     ``choices`` for a value from a list, ``layers`` for a list of positive layer sizes; ``help`` says what it is.
-    ``factory`` makes a mutable default (a list)."""
+    ``says`` words a broken interval or choice as "<name> must be <says>, got <value>" (e.g. "a positive integer")
+    in place of the interval's or the choices' own message. ``factory`` makes a mutable default (a list)."""
     meta = {"interval": interval, "choices": None if choices is None else tuple(choices), "layers": layers,
-            "help": help}
+            "says": says, "help": help}
     if factory is not MISSING:
         return dataclasses.field(default_factory=factory, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -105,9 +106,14 @@ def check_fields(obj: Any, skip: Sequence[str] = ()) -> None:
         if v is None:
             continue
         meta = f.metadata
-        if meta.get("interval"):
-            check_interval(f.name, v, meta["interval"])
-        if meta.get("choices") is not None:
-            check_choice(f.name, v, meta["choices"])
+        try:
+            if meta.get("interval"):
+                check_interval(f.name, v, meta["interval"])
+            if meta.get("choices") is not None:
+                check_choice(f.name, v, meta["choices"])
+        except ValueError:
+            if not meta.get("says"):
+                raise
+            raise ValueError(f"{f.name} must be {meta['says']}, got {v!r}") from None
         if meta.get("layers") and (not isinstance(v, list) or not all(_is(int, x) and x >= 1 for x in v)):
             raise ValueError(f"{f.name} must be a list of positive layer sizes, e.g. [256, 256], got {v!r}")

@@ -26,6 +26,7 @@ import threading
 import warnings
 from importlib import resources
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -160,7 +161,6 @@ class Setup:
         longest = fixed_steps if fixed_steps >= 0 else p.max_drag_steps + p.settle_max_substeps + 1
         self.record_every = int(record_every)
         self.frame_cap = longest // record_every + 1 if record_every > 0 else 0
-        self.n_nodes = p.n_nodes
         self.ip = torch.tensor([batch, p.n_nodes, p.max_drag_steps, p.settle_check_every, p.settle_max_substeps,
                                 fixed_steps, threads or torch.get_num_threads(), int(lane_groups),
                                 self.record_every, self.frame_cap], dtype=torch.int64)
@@ -229,35 +229,56 @@ def hvp(p, pos: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     return out
 
 
+class MoveOutputs(NamedTuple):
+    """What the fused moves' autograd functions (``KernelRun`` here, ``triton_kernel.TritonMove``) return, in this
+    order: the final positions and velocities (differentiable), then per rope the substeps run, the settled and
+    diverged flags (not differentiable), and the frames, (B, frame slots, N, 2) differentiable where recorded, else
+    an empty tensor. ``Simulator`` makes its MoveInfo of them."""
+
+    pos: torch.Tensor
+    vel: torch.Tensor
+    steps: torch.Tensor
+    settled: torch.Tensor
+    diverged: torch.Tensor
+    frames: torch.Tensor
+
+
+def move_outputs(ctx, pos, vel, steps, settled, diverged, frames=None) -> MoveOutputs:
+    """The end of both fused moves' forward: marks on ``ctx`` the outputs that are not differentiable, and makes
+    ``frames`` None (no recording) the empty tensor."""
+    ctx.set_materialize_grads(False)        # unused outputs (vel, frames) send None, not buffers of zeros
+    ctx.mark_non_differentiable(steps, settled, diverged)
+    if frames is None:
+        frames = pos.new_empty(0)
+        ctx.mark_non_differentiable(frames)
+    return MoveOutputs(pos, vel, steps, settled, diverged, frames)
+
+
+def frames_gradient(grad_frames: torch.Tensor | None) -> torch.Tensor | None:
+    """The incoming gradient of a fused move's frames output, None where there is none (or no frames)."""
+    return None if grad_frames is None or grad_frames.numel() == 0 else grad_frames
+
+
 class KernelRun(torch.autograd.Function):
-    """Differentiable kernel call: (pos, vel, delta, phys) -> (pos, vel, frames), plus non-differentiable run
-    statistics. ``phys``: None or the (B, 4) of ``physics_columns``; frames: an empty tensor without recording."""
+    """Differentiable kernel call: (pos, vel, delta, phys) -> ``MoveOutputs``. ``phys``: None or the (B, 4) of
+    ``physics_columns``."""
 
     @staticmethod
     def forward(ctx, setup, pos, vel, node, delta, speed, n_grasp, phys=None):
         out_pos, out_vel, steps, settled, diverged, frames = forward(setup, pos, vel, node, delta, speed, n_grasp,
                                                                      phys)
         ctx.setup = setup
-        ctx.set_materialize_grads(False)        # unused outputs (vel, frames) send None, not buffers of zeros
         ctx.save_for_backward(pos, vel, node, delta, speed, n_grasp, phys)
-        ctx.mark_non_differentiable(steps, settled, diverged)
-        if frames is None:
-            frames = pos.new_empty(0)
-            ctx.mark_non_differentiable(frames)
-        return out_pos, out_vel, steps, settled, diverged, frames
+        return move_outputs(ctx, out_pos, out_vel, steps, settled, diverged, frames)
 
     @staticmethod
     def backward(ctx, grad_pos, grad_vel, _steps, _settled, _diverged, grad_frames):
         pos, vel, node, delta, speed, n_grasp, phys = ctx.saved_tensors
         if grad_pos is None:
             grad_pos = torch.zeros_like(pos)
-        if grad_frames is not None and grad_frames.numel() == 0:
-            grad_frames = None
-        if grad_pos is None and grad_vel is None and grad_frames is None:
-            return (None,) * 8
         want_phys = phys is not None and ctx.needs_input_grad[7]
         g_pos, g_vel, g_delta, g_phys = backward(ctx.setup, pos, vel, node, delta, speed, n_grasp, grad_pos, grad_vel,
-                                                 phys, grad_frames, want_phys)
+                                                 phys, frames_gradient(grad_frames), want_phys)
         return None, g_pos, g_vel, None, g_delta, None, None, g_phys
 
 

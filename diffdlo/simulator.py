@@ -44,6 +44,33 @@ class MoveInfo:
 
 
 BACKENDS = ("auto", "kernel", "torch", "triton")
+ENGINES = ("kernel", "triton", "torch")          # what runs the moves, in the order "auto" prefers them
+
+
+def _resolve_engine(params: CableParams, device: torch.device, backend: str) -> tuple[str, dict[str, str]]:
+    """The engine that runs every move and free evolution of a Simulator (one of ENGINES), and for each fused kernel
+    ("kernel", "triton") not in use, why not. An explicit "kernel" or "triton" backend must already have passed the
+    Simulator's checks. The C++ kernel is asked whether it is available (built or loaded on first use, then cached
+    for the process) only where "auto" would run it: CPU tensors and the kinematic controller."""
+    why_not = {}
+    if backend in ("torch", "triton"):
+        why_not["kernel"] = f"backend is {backend!r}"
+    elif device.type != "cpu":
+        why_not["kernel"] = f"the fused C++ kernel runs on the CPU only, not on {device}"
+    elif params.controller != "kinematic":
+        why_not["kernel"] = f"the fused C++ kernel supports the kinematic controller only, not {params.controller!r}"
+    elif backend == "auto" and not kernel.available():
+        why_not["kernel"] = f"the fused C++ kernel is unavailable: {kernel.unavailable_reason()}"
+    if backend not in ("triton", "auto"):
+        why_not["triton"] = f"backend is {backend!r}"
+    elif backend == "auto" and device.type != "cuda":
+        why_not["triton"] = "backend 'auto' uses the Triton kernel on CUDA devices only"
+    elif params.controller != "kinematic":
+        why_not["triton"] = f"the Triton kernel supports the kinematic controller only, not {params.controller!r}"
+    elif (reason := triton_kernel.device_reason(device)) is not None:
+        why_not["triton"] = reason
+    engine = next(name for name in ENGINES if name == "torch" or name not in why_not)
+    return engine, why_not
 
 
 class Simulator:
@@ -57,6 +84,10 @@ class Simulator:
     on CPU tensors in Triton's interpreter (TRITON_INTERPRET=1); "auto" picks it on CUDA where triton imports and
     the controller is kinematic.
     All run the same scheme and agree to rounding.
+
+    The engine is chosen once, here: ``engine`` is "kernel", "triton" or "torch", what every ``move``, ``settle``
+    and ``integrate`` runs, and ``why_not`` says for each fused kernel not in use why not (where "auto" fell back
+    to "torch", the reason).
     """
 
     def __init__(self, params: CableParams | str | None = None, device: torch.device | str = "cpu",
@@ -92,36 +123,11 @@ class Simulator:
         self.params = params
         self.dtype = dtype
         self.backend = backend
+        self.engine, self.why_not = _resolve_engine(params, self.device, backend)
 
     def __repr__(self) -> str:
         return (f"Simulator(n_nodes={self.params.n_nodes}, controller={self.params.controller!r}, "
                 f"device={str(self.device)!r}, dtype={self.dtype}, backend={self.backend!r})")
-
-    def uses_kernel(self, record_every: int = 0) -> bool:
-        """Whether moves and free evolution run in the fused C++ kernel (with or without per-rope physics and frame
-        recording: ``record_every`` no longer matters and is kept for callers that pass it)."""
-        if self.backend in ("torch", "triton") or self.device.type != "cpu":
-            return False
-        return self.params.controller == "kinematic" and (self.backend == "kernel" or kernel.available())
-
-    def triton_unsupported(self, record_every: int = 0) -> str | None:
-        """Why moves and free evolution do not run in the Triton kernel (None: they do; it records frames too, so
-        ``record_every`` no longer matters and is kept for callers that pass it)."""
-        if self.backend not in ("triton", "auto"):
-            return f"backend is {self.backend!r}"
-        if self.backend == "auto" and self.device.type != "cuda":
-            return "backend 'auto' uses the Triton kernel on CUDA devices only"
-        if self.params.controller != "kinematic":
-            return f"the Triton kernel supports the kinematic controller only, not {self.params.controller!r}"
-        reason = triton_kernel.device_reason(self.device)
-        if reason is not None:
-            return reason
-        return None
-
-    def uses_triton(self, record_every: int = 0) -> bool:
-        """Whether moves (with frames every ``record_every`` substeps, if > 0) and free evolution run in the
-        fused Triton kernel (diffdlo/triton_kernel.py)."""
-        return self.triton_unsupported(record_every) is None
 
     # ----------------------------------------------------------------- input checks
     def _check_state(self, name: str, x: torch.Tensor) -> None:
@@ -205,22 +211,14 @@ class Simulator:
         self._check_state("vel", vel)
         if not isinstance(n_substeps, int) or n_substeps < 0:
             raise ValueError(f"n_substeps must be a non-negative integer, got {n_substeps!r}")
-        if n_substeps > 0 and self.uses_kernel():
-            batch = pos.shape[0]
-            setup = kernel.Setup(self.params, batch, fixed_steps=n_substeps, divergence_radius=DIVERGENCE_RADIUS)
-            zeros = torch.zeros(batch, dtype=torch.int64)
-            phys = None if physics is None else kernel.physics_columns(self.params, physics, batch)
-            pos, vel, _, _, diverged, _ = kernel.KernelRun.apply(
-                setup, pos, vel, zeros, torch.zeros(batch, 2, dtype=self.dtype),
-                torch.full((batch,), self.params.max_speed, dtype=self.dtype), zeros, phys)
-            if diverged.any():
-                self._check_finite(pos, f"after {n_substeps} free substeps")
-            return pos, vel
-        if n_substeps > 0 and self.uses_triton():
-            pos, vel, _, _, diverged, _ = self._triton_apply(pos, vel, None, None, None, n_substeps, physics)
-            if bool(diverged.any()):
-                self._check_finite(pos, f"after {n_substeps} free substeps")
-            return pos, vel
+        if n_substeps > 0 and self.engine != "torch":
+            if self.engine == "kernel":
+                out = self._kernel_apply(pos, vel, None, None, None, None, physics, fixed_steps=n_substeps)
+            else:
+                out = self._triton_apply(pos, vel, None, None, None, n_substeps, physics)
+            if bool(out.diverged.any()):
+                self._check_finite(out.pos, f"after {n_substeps} free substeps")
+            return out.pos, out.vel
         for _ in range(n_substeps):
             pos, vel = self.substep(pos, vel, physics=physics)
         self._check_finite(pos, f"after {n_substeps} free substeps")
@@ -261,12 +259,15 @@ class Simulator:
         distance = delta.norm(dim=-1)
         speed = control.drag_speed(distance, p)
         path_steps = control.path_substeps(distance, p)                       # (B,) on device
-        if self.uses_kernel(record_every):
-            return self._move_kernel(pos, vel, node, delta, speed, path_steps, return_info,
-                                     record_every if return_info else 0, physics, differentiable_frames)
-        if self.uses_triton(record_every if return_info else 0):
-            return self._move_triton(pos, vel, node, delta, path_steps, return_info, physics,
-                                     record_every if return_info else 0, differentiable_frames)
+        if self.engine != "torch":
+            every = record_every if return_info else 0
+            if self.engine == "kernel":
+                # speed's dependence on delta is inside the kernel's adjoint, so it goes in detached
+                out = self._kernel_apply(pos, vel, node, delta, speed.detach(), path_steps, physics,
+                                         record_every=every)
+            else:
+                out = self._triton_apply(pos, vel, node, delta, path_steps, -1, physics, every)
+            return self._fused_result(out, node, delta, path_steps, return_info, every, differentiable_frames)
         pos, _, grasp_steps_cpu, finished_at, settled, frames = self._move_eager(
             pos, vel, node, delta, speed, path_steps, physics, record_every, differentiable_frames)
         if not return_info:
@@ -335,45 +336,43 @@ class Simulator:
         self._check_finite(pos, f"after a move (node={node.tolist()}, delta={delta.tolist()})")
         return pos, vel, grasp_steps_cpu, finished_at, settled, frames
 
-    def _triton_apply(self, pos, vel, node, delta, path_steps, fixed_steps, physics, record_every=0):
-        phys = triton_kernel.columns(self.params, physics, pos.shape[0], pos.device, pos.dtype)
-        return triton_kernel.TritonMove.apply(self, pos, vel, node, delta, path_steps, fixed_steps, phys,
-                                              record_every)
-
-    def _move_triton(self, pos, vel, node, delta, path_steps, return_info, physics=None, record_every=0,
-                     differentiable_frames=False):
-        pos, _, steps, settled, diverged, buffer = self._triton_apply(pos, vel, node, delta, path_steps, -1, physics,
-                                                                      record_every)
-        return self._kernel_result(pos, node, delta, path_steps, steps, settled, diverged, buffer, return_info,
-                                   record_every, differentiable_frames)
-
-    def _move_kernel(self, pos, vel, node, delta, speed, path_steps, return_info, record_every=0, physics=None,
-                     differentiable_frames=False):
+    def _kernel_apply(self, pos, vel, node, delta, speed, path_steps, physics, fixed_steps=-1,
+                      record_every=0) -> kernel.MoveOutputs:
+        """The C++ kernel's move (``delta`` already clipped), or with ``fixed_steps`` >= 0 free evolution for that
+        many substeps (node, delta, speed and path_steps then unused: pass None)."""
         batch = pos.shape[0]
-        setup = kernel.Setup(self.params, batch, divergence_radius=DIVERGENCE_RADIUS, record_every=record_every)
+        setup = kernel.Setup(self.params, batch, fixed_steps=fixed_steps, divergence_radius=DIVERGENCE_RADIUS,
+                             record_every=record_every)
+        if fixed_steps >= 0:
+            node = path_steps = torch.zeros(batch, dtype=torch.int64)
+            delta = torch.zeros(batch, 2, dtype=self.dtype)
+            speed = torch.full((batch,), self.params.max_speed, dtype=self.dtype)
         phys = None if physics is None else kernel.physics_columns(self.params, physics, batch)
-        # speed's dependence on delta is inside the kernel's adjoint, so it goes in detached
-        pos, _, steps, settled, diverged, buffer = kernel.KernelRun.apply(setup, pos, vel, node, delta,
-                                                                          speed.detach(), path_steps, phys)
-        return self._kernel_result(pos, node, delta, path_steps, steps, settled, diverged, buffer, return_info,
-                                   record_every, differentiable_frames)
+        return kernel.MoveOutputs._make(kernel.KernelRun.apply(setup, pos, vel, node, delta, speed, path_steps, phys))
+
+    def _triton_apply(self, pos, vel, node, delta, path_steps, fixed_steps, physics,
+                      record_every=0) -> kernel.MoveOutputs:
+        """The Triton kernel's move or free evolution (``triton_kernel.TritonMove``)."""
+        phys = triton_kernel.columns(self.params, physics, pos.shape[0], pos.device, pos.dtype)
+        return kernel.MoveOutputs._make(triton_kernel.TritonMove.apply(self, pos, vel, node, delta, path_steps,
+                                                                       fixed_steps, phys, record_every))
 
     @staticmethod
-    def _kernel_result(pos, node, delta, path_steps, steps, settled, diverged, buffer, return_info, record_every,
-                       differentiable_frames):
+    def _fused_result(out: kernel.MoveOutputs, node, delta, path_steps, return_info, record_every,
+                      differentiable_frames):
         """What the fused kernels (C++ or Triton) return to ``move``: a diverged rope raised, else pos, and with
         ``return_info`` its MoveInfo (on the CPU, whatever the device)."""
-        if bool(diverged.any()):
-            ids = diverged.nonzero().flatten().tolist()
+        if bool(out.diverged.any()):
+            ids = out.diverged.nonzero().flatten().tolist()
             raise SimulationError(f"simulation diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for batch "
                                   f"members {ids} during a move (node={node.tolist()}, delta={delta.tolist()})")
         if not return_info:
-            return pos
-        frames = (kernel.assemble_frames(record_every, buffer, pos, steps, differentiable_frames) if record_every > 0
-                  else None)
-        path_steps, steps = path_steps.cpu(), steps.cpu()
-        return pos, MoveInfo(drag_substeps=path_steps, settle_substeps=steps - path_steps, settled=settled.cpu(),
-                             frames=frames)
+            return out.pos
+        frames = (kernel.assemble_frames(record_every, out.frames, out.pos, out.steps, differentiable_frames)
+                  if record_every > 0 else None)
+        path_steps, steps = path_steps.cpu(), out.steps.cpu()
+        return out.pos, MoveInfo(drag_substeps=path_steps, settle_substeps=steps - path_steps,
+                                 settled=out.settled.cpu(), frames=frames)
 
     # ----------------------------------------------------------------- shapes
     def random_shape(self, batch: int, generator: torch.Generator | None = None) -> torch.Tensor:

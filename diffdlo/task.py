@@ -8,8 +8,8 @@ call these functions rather than restating them:
 - actions: ``decode_node`` / ``decode_drag`` / ``encode_node_action`` (the node action, eq 2.6),
   ``decode_pixel_node`` (the pixel action, eq 2.5), ``decode_action`` (either);
 - the greedy move (the node farthest from its place, dragged towards it): ``greedy_drags``;
-- rewards, success and episode end: ``EpisodeRules`` and ``step_outcome`` (the rewards themselves are in
-  diffdlo/rewards.py, eq 2.7-2.11);
+- rewards, success and episode end: ``step_outcome``, by the env's options (``diffdlo.envs.EnvOptions``; the rewards
+  themselves are in diffdlo/rewards.py, eq 2.7-2.11);
 - observations: ``observation_space`` and ``observe``.
 
 A new target family, reward, action head or observation is an addition here.
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -28,6 +28,9 @@ from . import image as rimage
 from .params import CableParams
 from .rewards import orientation_error, reward as move_reward, shape_error
 from .shapes import (CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape)
+
+if TYPE_CHECKING:                      # the env's options are built on this module's names: no import at run time
+    from .envs.options import EnvOptions
 
 OBS_TYPES = ("points", "distance", "image", "image_single", "perceived")
 # The observation kinds, named once. POINT_OBS: {node_poses, target_poses}, the rope's and target's node positions
@@ -139,23 +142,12 @@ def greedy_drags(pos: torch.Tensor, target: torch.Tensor, max_disp: float) -> tu
 
 
 # ====================================================================== rewards, success, episode end
-@dataclasses.dataclass(frozen=True)
-class EpisodeRules:
-    """How a move is scored and when an episode ends (thesis Algorithm 2 with the error metric; the options after
-    ``max_steps`` are ours, off by default). See ``step_outcome``."""
-    reward: str = "position_orientation"
-    success_tol: float = 0.01
-    max_steps: int = 100
-    success_bonus: float = 20.0
-    step_penalty: float = 0.0
-    on_exit: str = "truncate"
-    exit_penalty: float = 0.0
-    workspace: tuple[float, float] = (2.0, 2.0)
-
-
-def step_outcome(rules: EpisodeRules, prev: torch.Tensor, new: torch.Tensor, target: torch.Tensor,
+def step_outcome(rules: EnvOptions, prev: torch.Tensor, new: torch.Tensor, target: torch.Tensor,
                  steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Score the moves prev -> new (B, N, 2) towards ``target`` after ``steps`` (B,) moves (this one included).
+    """Score the moves prev -> new (B, N, 2) towards ``target`` after ``steps`` (B,) moves (this one included), by
+    the rules of resolved env options (``EnvOptions.resolve()``, an env's ``options``): reward, success_tol,
+    max_steps, success_bonus, step_penalty, on_exit, exit_penalty and workspace (thesis Algorithm 2 with the error
+    metric; the options after max_steps are ours, off by default).
 
     Returns (reward, terminated, truncated, success), each (B,). Success: shape_error < success_tol; it
     terminates with reward success_bonus. A node outside the workspace rectangle (centred at the origin) truncates

@@ -28,7 +28,7 @@ matched the eager path to 2e-11 m; now to rounding, 1e-17).
 
 Frames (``record_every`` > 0) are recorded per rope up to its own stop, as the C++ kernel's, and their gradients go
 in at their substeps in the adjoint. Not supported here (the simulator then uses the eager torch path,
-``Simulator.triton_unsupported`` says why): the PID controller.
+``Simulator.why_not["triton"]`` says why): the PID controller.
 
 Triton's interpreter (``TRITON_INTERPRET=1``) runs the kernel on CPU tensors; that is how the tests check it
 against the eager path on a machine without a GPU.
@@ -39,6 +39,8 @@ import math
 import os
 
 import torch
+
+from .kernel import MoveOutputs, frames_gradient, move_outputs, physics_columns
 
 try:                                           # optional: pip install diffdlo[gpu]
     import triton
@@ -481,7 +483,6 @@ def columns(p, physics, batch: int, device, dtype) -> torch.Tensor:
         row = torch.tensor([p.k_s, p.k_b, 1.0 / p.node_mass, 1.0 / (1.0 + p.dt * p.k_d / p.node_mass)],
                            dtype=torch.float64)
         return row.to(device=device, dtype=dtype).expand(batch, 4).contiguous()
-    from .kernel import physics_columns
     return physics_columns(p, physics, batch, device=device, dtype=dtype)
 
 
@@ -571,14 +572,14 @@ def backward(p, pos, node, delta, speed, n_grasp, phys, steps, ckpt, grad_pos, g
 
 
 class TritonMove(torch.autograd.Function):
-    """Differentiable Triton move / free evolution: (pos, vel, delta, phys) -> (pos, vel, steps, settled,
-    diverged, frames), forward and backward each one kernel launch. ``delta`` is the already clipped drag (its
-    reference speed is differentiated inside the adjoint); ``path_steps`` its substep count; ``fixed_steps`` >= 0
-    makes it ``integrate``. ``phys``: the (B, 4) ``columns``, whose gradient autograd carries on to k_s, k_b, k_d
-    and mass. ``record_every`` > 0: frames as ``forward`` returns them (differentiable), else an empty tensor."""
+    """Differentiable Triton move / free evolution: (pos, vel, delta, phys) -> ``kernel.MoveOutputs``, forward and
+    backward each one kernel launch. ``delta`` is the already clipped drag (its reference speed is differentiated
+    inside the adjoint); ``path_steps`` its substep count; ``fixed_steps`` >= 0 makes it ``integrate``. ``phys``:
+    the (B, 4) ``columns``, whose gradient autograd carries on to k_s, k_b, k_d and mass. ``record_every`` > 0:
+    frames as ``forward`` returns them (differentiable)."""
 
     @staticmethod
-    def forward(ctx, sim, pos, vel, node, delta, path_steps, fixed_steps, phys, record_every=0):
+    def forward(ctx, sim, pos, vel, node, delta, path_steps, fixed_steps, phys, record_every=0) -> MoveOutputs:
         from . import control
         p = sim.params
         batch = pos.shape[0]
@@ -593,20 +594,14 @@ class TritonMove(torch.autograd.Function):
         out_pos, out_vel, steps, settled, diverged, ckpt, frames = forward(
             p, pos, vel, node, delta, speed, path_steps, phys, fixed_steps, save=save, record_every=record_every)
         ctx.params, ctx.fixed_steps, ctx.record_every = p, fixed_steps, record_every
-        ctx.set_materialize_grads(False)        # unused outputs (vel, frames) send None, not buffers of zeros
         ctx.save_for_backward(pos, node, delta, speed, path_steps, phys, steps, ckpt)
-        ctx.mark_non_differentiable(steps, settled, diverged)
-        if frames is None:
-            frames = pos.new_empty(0)
-            ctx.mark_non_differentiable(frames)
-        return out_pos, out_vel, steps, settled, diverged, frames
+        return move_outputs(ctx, out_pos, out_vel, steps, settled, diverged, frames)
 
     @staticmethod
     def backward(ctx, grad_pos, grad_vel, _steps, _settled, _diverged, grad_frames):
         pos, node, delta, speed, path_steps, phys, steps, ckpt = ctx.saved_tensors
         needs = ctx.needs_input_grad
-        if grad_frames is not None and grad_frames.numel() == 0:
-            grad_frames = None
+        grad_frames = frames_gradient(grad_frames)
         if grad_pos is None and grad_vel is None and grad_frames is None:
             return (None,) * 9
         g_pos, g_vel, g_delta, g_phys = backward(ctx.params, pos, node, delta, speed, path_steps, phys, steps, ckpt,

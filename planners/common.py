@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from diffdlo import task
 from diffdlo.checks import check_interval
-from diffdlo.envs import BatchedShapeControl
+from diffdlo.envs import BatchedShapeControl, EnvOptions
 from diffdlo.signals import exit_code, stop_on_signals
 from diffdlo.files import OutBusyError, check_fresh_out, out_lock, shapes_record, write_json_atomic
 from diffdlo.params import CableParams, ParamsError, load_params
@@ -74,8 +74,8 @@ def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *
     the target set. Returns (env, planner, target), target None for a family (drawn per episode). Raises ParamsError
     (ropes that disagree on SAME_MOVES), TargetError, or ValueError/RuntimeError (the env's options, the device)."""
     check_same_moves(model, real)
-    env = BatchedShapeControl(1, target="horizontal", max_steps=max_steps, success_tol=success_tol, params=real,
-                              device=device)
+    task_options = EnvOptions(target="horizontal", max_steps=max_steps, success_tol=success_tol, params=real)
+    env = BatchedShapeControl(1, task_options, device=device)
     target = task.resolve_target(target_spec, model, env.device, env.dtype)
     env.set_target(target)
     sim = env.sim if real == model else Simulator(model, device=env.device, dtype=env.dtype,

@@ -47,7 +47,7 @@ def test_policy_gradient_through_moves_matches_finite_differences(p, horizon):
     """d J / d theta, J the summed shape_gain of H chained moves whose drags come from the policy (the later move's
     observation depends on the earlier move), through the kernel's adjoint in float64: central differences agree."""
     sim, start, target = ropes(p, 3)
-    assert sim.uses_kernel()
+    assert sim.engine == "kernel"
     torch.manual_seed(0)
     pol = LinearPolicy(p.n_nodes)
     node = torch.tensor([5, 0, 2])

@@ -41,8 +41,8 @@ def test_uniform_next_obs_respects_episode_ends_and_head(rows):
 @pytest.mark.parametrize("rows", [9, 23, 30])
 def test_chunks_never_cross_episode_end_or_write_head(rows):
     rb = fill(make(), rows, end_every=(3, 5))
-    b = rb.sample_chunks(500, 3, generator=torch.Generator().manual_seed(1))
-    x = b["obs"]["x"][..., 0]                                   # (batch, L)
+    b = rb.sample_sequences(500, 3, generator=torch.Generator().manual_seed(1))
+    x = b["obs"]["x"][:, :-1, 0]                                # (batch, L): the rows, not the obs after them
     assert torch.equal(x[:, 1:] - x[:, :-1], torch.full_like(x[:, 1:], 100))   # contiguous in time, one env
     done = b["terminated"] | b["truncated"]
     assert not done[:, :-1].any()                               # an end only at the last row
@@ -51,7 +51,7 @@ def test_chunks_never_cross_episode_end_or_write_head(rows):
     starts = {(int(t), int(e)) for t, e in rb.chunk_starts(3).tolist()}
     assert all(not bool((rb.terminated | rb.truncated)[(t + k) % 10, e]) for t, e in starts for k in range(2))
     with pytest.raises(ValueError):
-        rb.sample_chunks(1, 6)                                  # no 6-row chunk without an end in env 0
+        rb.sample_sequences(1, 6)                              # no 6-row chunk without an end in env 0
 
 
 def test_gae_matches_hand_computation_and_bootstraps_truncation_only():

@@ -55,7 +55,7 @@ def test_kernel_move_equals_reference_with_gradients(params, variant):
     delta[MIXED - 2] = 0.0
     delta[0] = 0.0                                    # no drag at all: settle only
     delta[1] = torch.tensor([0.3, -0.2], dtype=torch.float64)      # clipped to max_disp
-    assert fast.uses_kernel() and not ref.uses_kernel()
+    assert fast.engine == "kernel" and ref.engine != "kernel"
     a, ia = ref.move(pos, node, delta, return_info=True)
     b, ib = fast.move(pos, node, delta, return_info=True)
     torch.testing.assert_close(b, a, rtol=0, atol=1e-12)
@@ -136,9 +136,9 @@ def test_kernel_reports_divergence(params, batch, bad):
 
 
 def test_backend_selection_and_fallback(params, monkeypatch):
-    assert diffdlo.Simulator(params).uses_kernel()
-    assert diffdlo.Simulator(params).uses_kernel(record_every=10)              # frames run in the kernel too
-    assert not diffdlo.Simulator(dataclasses.replace(params, controller="pid")).uses_kernel()
+    assert diffdlo.Simulator(params).engine == "kernel"
+    assert diffdlo.Simulator(params).engine == "kernel"                       # frames run in the kernel too
+    assert diffdlo.Simulator(dataclasses.replace(params, controller="pid")).engine != "kernel"
     with pytest.raises(ValueError, match="kinematic controller only"):
         diffdlo.Simulator(dataclasses.replace(params, controller="pid"), backend="kernel")
     with pytest.raises(ValueError, match="backend must be one of"):
@@ -148,7 +148,7 @@ def test_backend_selection_and_fallback(params, monkeypatch):
     with pytest.raises(RuntimeError, match="backend 'kernel' is unavailable: no C\\+\\+ compiler"):
         diffdlo.Simulator(params, backend="kernel")
     sim = diffdlo.Simulator(params)                   # auto falls back to the torch path
-    assert not sim.uses_kernel()
+    assert sim.engine != "kernel"
     pos = sim.random_shape(1, torch.Generator().manual_seed(0))
     assert sim.move(pos, torch.tensor([0]), torch.tensor([[0.01, 0.0]])).shape == pos.shape
 

@@ -187,7 +187,7 @@ def test_physics_none_and_no_frames_is_the_plain_kernel_path(mixed):
     checks); the params' own numbers as per-rope physics give the very same bits."""
     pos, node, delta, _ = batch(mixed, seed=11)
     sim = diffdlo.Simulator(mixed, dtype=torch.float64)
-    assert sim.uses_kernel() and sim.uses_kernel(record_every=5)
+    assert sim.engine == "kernel"
     plain, info = sim.move(pos, node, delta, return_info=True)
     assert info.frames is None
     ref = diffdlo.Simulator(mixed, dtype=torch.float64, backend="torch").move(pos, node, delta)

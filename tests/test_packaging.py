@@ -114,7 +114,7 @@ def test_kernel_unavailable_warns_once_with_the_slowdown_and_the_fix(fresh_kerne
         warnings.simplefilter("error", diffdlo.KernelUnavailableWarning)          # a second warning would raise
         assert not kernel.available()
         sim = diffdlo.Simulator(params)
-        assert not sim.uses_kernel()
+        assert sim.engine != "kernel"
         pos = sim.random_shape(1, torch.Generator().manual_seed(0))
         assert sim.move(pos, torch.tensor([0]), torch.tensor([[0.01, 0.0]])).shape == pos.shape
 

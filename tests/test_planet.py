@@ -13,7 +13,7 @@ from agents.checkpoints import CHECKPOINT
 from agents.config import load_config
 from agents.envs import make_env
 from agents.logs import read_csv
-from agents.rssm import RSSM, free_nats_kl, gauss_kl
+from agents.rssm import RSSM, LatentObjective, LatentPlanner, free_nats_kl, gauss_kl
 from planners.cem import CEM
 
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
@@ -43,6 +43,12 @@ def collect(cfg, rows, seed=0):
     return rb, obs
 
 
+def sequences(rb, batch, length, generator=None):
+    """``ReplayBuffer.sample_sequences`` as the models' loss takes it: obs, actions, rewards, mask."""
+    s = rb.sample_sequences(batch, length, generator)
+    return s["obs"], s["action"], s["reward"], s["mask"]
+
+
 @pytest.mark.parametrize("obs_type,action", [("points", "node"), ("distance", "pixel"), ("image", "node")])
 def test_rssm_shapes_and_loss_terms(obs_type, action):
     cfg = tiny_cfg(obs=obs_type, action=action, image_size=40, image_embed=32, cnn_channels=[4, 8, 8],
@@ -50,7 +56,7 @@ def test_rssm_shapes_and_loss_terms(obs_type, action):
     rb, obs = collect(cfg, 12)
     a_dim = 3 if action == "node" else 4
     m = planet.build_model(cfg, obs, a_dim, cfg.task.cable_params())
-    o, a, r, mask = planet.sample_sequences(rb, 5, 4)
+    o, a, r, mask = sequences(rb, 5, 4)
     first = next(iter(o.values())) if isinstance(o, dict) else o
     assert first.shape[:2] == (5, 5) and a.shape == (5, 4, a_dim) and r.shape == (5, 4) and mask.shape == (5, 5)
     L = m.loss(o, a, r, mask)
@@ -77,7 +83,7 @@ def test_reconstruction_term_is_the_gaussian_log_likelihood(obs_type, monkeypatc
     cfg = tiny_cfg(obs=obs_type, image_size=40, image_embed=32, cnn_channels=[4, 8, 8], deconv_channels=[8, 4])
     rb, obs = collect(cfg, 12)
     m = planet.build_model(cfg, obs, 3, cfg.task.cable_params())
-    o, a, r, mask = planet.sample_sequences(rb, 5, 4)
+    o, a, r, mask = sequences(rb, 5, 4)
     delta = 0.03
     monkeypatch.setattr(m, "decode", lambda feat: {k: v + delta for k, v in m.obs_target(o if isinstance(o, dict)
                                                                                          else {"obs": o}).items()})
@@ -101,7 +107,7 @@ def test_free_nats_clamp_constant_and_no_gradient():
     cfg = tiny_cfg(free_nats=1e6)
     rb, obs = collect(cfg, 10)
     m = planet.build_model(cfg, obs, 3, cfg.task.cable_params())
-    L = m.loss(*planet.sample_sequences(rb, 4, 4))
+    L = m.loss(*sequences(rb, 4, 4))
     assert float(L["kl_loss"].detach()) == 1e6 and float(L["kl"].detach()) < 1e6
     grads = torch.autograd.grad(L["kl_loss"], list(m.parameters()), allow_unused=True)
     assert all(g is None or torch.count_nonzero(g) == 0 for g in grads)
@@ -111,13 +117,13 @@ def test_chunk_sampler_feeds_valid_sequences():
     cfg = tiny_cfg(max_steps=3)                       # episodes of 3 moves: many ends in the buffer
     rb, _ = collect(cfg, 20)
     g = torch.Generator().manual_seed(0)
-    c = rb.sample_chunks(200, 3, g)
+    c = rb.sample_sequences(200, 3, g)
     ends = c["terminated"] | c["truncated"]
     assert not bool(ends[:, :-1].any())             # an episode end only at the chunk's last row
     assert bool(ends[:, -1].any())                  # ... and those chunks are sampled
     assert bool((c["e"] == c["e"][:, :1]).all())
     assert bool(((c["t"][:, 1:] - c["t"][:, :-1]) % rb.capacity == 1).all())
-    o, a, r, mask = planet.sample_sequences(rb, 200, 3, torch.Generator().manual_seed(0))
+    o, a, r, mask = sequences(rb, 200, 3, torch.Generator().manual_seed(0))
     assert torch.equal(a, c["action"]) and torch.equal(r, c["reward"])
     t, e = c["t"][:, -1], c["e"][:, -1]
     for i in range(200):                            # the extra observation is the step's true next observation
@@ -138,7 +144,7 @@ def test_tiny_model_overfits_a_fixed_sequence():
     torch.manual_seed(0)
     cfg = tiny_cfg(obs_std=0.1, deter=32, stoch=8, hidden=64, embed=32)
     rb, obs = collect(cfg, 12)
-    batch = planet.sample_sequences(rb, 4, 6, torch.Generator().manual_seed(1))
+    batch = sequences(rb, 4, 6, torch.Generator().manual_seed(1))
     m = planet.build_model(cfg, obs, 3, cfg.task.cable_params())
     opt = torch.optim.Adam(m.parameters(), lr=3e-3, eps=1e-4)
     losses = []
@@ -175,14 +181,14 @@ def test_latent_cem_improves_a_known_objective():
     assert cost < 0.1 * float(random_cost)
     assert cem.history[-1]["best"] < cem.history[0]["best"]
     # the same through the agent's LatentObjective (reward form) and planner: valid actions, node and pixel
-    obj = planet.LatentObjective(m, st)
+    obj = LatentObjective(m, st)
     assert obj(torch.rand(7, 2, 3)).shape == (7,)
     for action in ("node", "pixel"):
         c2 = tiny_cfg(action=action, horizon=2, candidates=16, elites=4, iterations=2)
         e2 = make_env(c2.task, c2.run, c2.task.cable_params(), 3)
         o2 = e2.reset(seed=1)
         m2 = planet.build_model(c2, o2, e2.core.action_dim, c2.task.cable_params())
-        pl = planet.LatentPlanner(m2, c2, e2.core, 0)
+        pl = LatentPlanner(m2, c2, e2.core, 0)
         for _ in range(2):
             a = pl(o2, deterministic=False)
             assert a.shape == (3, e2.core.action_dim) and bool(((a >= 0) & (a <= 1)).all())
@@ -288,12 +294,12 @@ def test_a_stop_within_a_step_resumes_as_the_uninterrupted_run(where, uninterrup
     a, b, extra = uninterrupted, tmp_path / "b", STOP_RUN
     calls = []
     if where == "between-updates":      # asked in the 2nd phase's 2nd update (updates_per_train=4): stops after it
-        monkeypatch.setattr(planet, "sample_sequences", stop_when(calls, planet, "sample_sequences", 6))
+        monkeypatch.setattr(ReplayBuffer, "sample_sequences", stop_when(calls, ReplayBuffer, "sample_sequences", 6))
     else:                                # a planned move of the 2nd evaluation (step 128) or of the held-out one
         eval_call = lambda self, obs, deterministic=True: deterministic
         after = {"in-evaluation": 8 + 3, "in-heldout": 16 + 3}[where]   # 8 evaluation moves at most (max_steps)
-        monkeypatch.setattr(planet.LatentPlanner, "__call__",
-                            stop_when(calls, planet.LatentPlanner, "__call__", after, eval_call))
+        monkeypatch.setattr(LatentPlanner, "__call__",
+                            stop_when(calls, LatentPlanner, "__call__", after, eval_call))
     assert planet.main(argv(b, 128, *extra)) == 143                  # as a shell reports SIGTERM
     monkeypatch.undo()
     assert "stopped by SIGTERM at env step" in capsys.readouterr().err

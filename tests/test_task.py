@@ -8,7 +8,7 @@ import torch
 import diffdlo
 from agents import config, sac
 from diffdlo import task
-from diffdlo.envs import BatchedShapeControl
+from diffdlo.envs import BatchedShapeControl, EnvOptions
 
 
 @pytest.fixture
@@ -47,8 +47,8 @@ def test_greedy_drags_point_at_the_aligned_target_capped_in_length(small):
 
 
 def test_step_outcome_scores_success_exit_and_time_limit():
-    rules = task.EpisodeRules(reward="shape_gain", success_tol=0.01, max_steps=3, success_bonus=20.0,
-                              step_penalty=0.5, on_exit="fail", exit_penalty=7.0)
+    rules = EnvOptions(reward="shape_gain", success_tol=0.01, max_steps=3, success_bonus=20.0,
+                       step_penalty=0.5, on_exit="fail", exit_penalty=7.0).resolve()
     target = torch.zeros(3, 2, 2)
     target[:, 1, 0] = 0.1
     prev = target + torch.tensor([0.0, 0.05])

@@ -184,7 +184,7 @@ def test_on_exit_fail_terminates_with_the_exit_penalty(small):
 
 def test_on_exit_truncate_is_the_default_and_keeps_the_reward(small):
     env = _near_edge(small)
-    assert env.rules.on_exit == "truncate"
+    assert env.options.on_exit == "truncate"
     prev, target = env.get_state().pos[0].clone(), env.get_state().target[0].clone()
     _, r, term, trunc, info = env.step(torch.tensor(DRAG_OUT, dtype=torch.float64))
     assert float(env.get_state().pos[0, :, 0].max()) > 1.0
@@ -238,7 +238,8 @@ def test_gymnasium_make_and_check_env(small):
     env = gym.make(ENV_ID, params=small, target="random_curve", on_exit="fail", reward="shape_gain",
                    step_penalty=0.1, exit_penalty=1.0)
     core = env.unwrapped.core
-    assert (core.get_state().target_spec, core.rules.on_exit, core.reward_type) == ("random_curve", "fail", "shape_gain")
+    assert (core.get_state().target_spec, core.options.on_exit, core.reward_type) == ("random_curve", "fail",
+                                                                                      "shape_gain")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         check_env(env.unwrapped)

@@ -53,7 +53,7 @@ def problem(p, dtype):
 def test_move_matches_eager(params, dtype, tol):
     p = short(params)
     ref, tri = sims(p, dtype)
-    assert tri.uses_triton() and not ref.uses_triton() and not tri.uses_kernel()
+    assert tri.engine == "triton" and ref.engine != "triton" and tri.engine != "kernel"
     pos, node, delta = problem(p, dtype)
     vel = torch.zeros_like(pos)
     vel[0, 4] = torch.tensor([0.01, -0.02], dtype=dtype)
@@ -169,7 +169,7 @@ def test_frames_match_eager(params, differentiable):
     frames has the eager gradient (the adjoint adds each frame's gradient at its substep)."""
     p = short(params, n_nodes=6, length=0.15)
     ref, tri = sims(p, torch.float64)
-    assert tri.uses_triton(record_every=7) and tri.triton_unsupported(record_every=7) is None
+    assert tri.engine == "triton" and "triton" not in tri.why_not
     pos = crumpled(3, p, sigma=0.5, seed=2).to(DEVICE)
     pos[2] = torch.stack([torch.linspace(-0.075, 0.075, p.n_nodes, dtype=torch.float64),
                           torch.zeros(p.n_nodes, dtype=torch.float64)], -1).to(DEVICE)     # at rest
@@ -208,7 +208,7 @@ def test_bad_inputs_name_the_problem(params):
     code = ("import sys\nsys.modules['triton'] = None\nimport diffdlo\nfrom diffdlo import triton_kernel\n"
             "assert not triton_kernel.available()\ntry:\n    diffdlo.Simulator(backend='triton')\n"
             "except RuntimeError as e:\n    print('ERR', e)\n"
-            "print('AUTO', diffdlo.Simulator().backend, diffdlo.Simulator().uses_triton())\n")
+            "print('AUTO', diffdlo.Simulator().backend, diffdlo.Simulator().engine == 'triton')\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert "ERR" in out.stdout and "triton is not importable" in out.stdout, out
     assert "AUTO auto False" in out.stdout, out
@@ -217,9 +217,9 @@ def test_bad_inputs_name_the_problem(params):
 def test_auto_picks_triton_on_cuda_only(params):
     sim = diffdlo.Simulator(params, device=DEVICE)
     if DEVICE == "cuda":
-        assert sim.uses_triton() and not sim.uses_kernel()
+        assert sim.engine == "triton" and sim.engine != "kernel"
     else:
-        assert not sim.uses_triton() and "CUDA" in sim.triton_unsupported()
+        assert sim.engine != "triton" and "CUDA" in sim.why_not["triton"]
 
 
 def test_every_kernel_compiles_for_a_gpu_without_one():

@@ -3,12 +3,14 @@
 - ``DiffDLO/ShapeControl-v0``: ``gymnasium.make`` -> ShapeControlEnv (one rope),
   ``gymnasium.make_vec`` -> ShapeControlVectorEnv (B ropes, one batched simulator call per step).
 - ``BatchedShapeControl`` (core.py): the torch-native batched core both are built on (tensors in, tensors out); its
-  state is one ``EnvState`` (state.py). The task's rules are diffdlo/task.py's.
+  state is one ``EnvState`` (state.py), its options one ``EnvOptions`` (options.py). The task's rules are
+  diffdlo/task.py's.
 """
 from gymnasium.envs.registration import register, registry
 
 from ..task import ACTION_TYPES, OBS_TYPES
-from .core import DEFAULT_VIEW_SIZE, BatchedShapeControl
+from .core import BatchedShapeControl
+from .options import DEFAULT_VIEW_SIZE, EnvOptions
 from .shape_control import ShapeControlEnv
 from .state import EnvState
 from .vector import ShapeControlVectorEnv
@@ -24,4 +26,4 @@ if ENV_ID not in registry:
              vector_entry_point="diffdlo.envs.vector:ShapeControlVectorEnv", max_episode_steps=MAX_EPISODE_STEPS)
 
 __all__ = ["ACTION_TYPES", "DEFAULT_VIEW_SIZE", "ENV_ID", "MAX_EPISODE_STEPS", "OBS_TYPES", "BatchedShapeControl",
-           "EnvState", "ShapeControlEnv", "ShapeControlVectorEnv"]
+           "EnvOptions", "EnvState", "ShapeControlEnv", "ShapeControlVectorEnv"]

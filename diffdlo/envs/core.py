@@ -19,19 +19,12 @@ from gymnasium.utils import seeding
 
 from .. import image as rimage
 from .. import task
-from ..params import CableParams
-from ..shapes import (CURVE_MAX_TURN_DEG, TARGET_NAMES, check_finite_nodes, check_link_lengths, check_shape,
-                      target_shape)
+from ..shapes import TARGET_NAMES, check_finite_nodes, check_link_lengths, check_shape, target_shape
 from ..simulator import Simulator
 from ..task import ACTION_DIMS
-from .options import _choice_error, check_actions, checked_options
+from .options import EnvOptions, _choice_error, check_actions, env_options
 from .state import EnvState
 
-# Side [m] of the square view window of image observations and pixel actions, centred at the origin: x, y in
-# [-0.5, 0.5]. The rope is 0.5 m long and starts centred at the origin, so a start shape always fits with room for
-# ~0.25 m of drift; at 64 px one pixel is 15.6 mm. A rope may drift out of the view (it is truncated only at the
-# 2 m workspace): pass view_size=2.0 to see the whole workspace at a coarser 31 mm/pixel.
-DEFAULT_VIEW_SIZE = 1.0
 RENDER_SIZE = 256
 INFO_KEYS = ("shape_error", "orientation_error", "is_success", "node", "substeps")
 AUTORESET_MODES = (None, "next_step", "same_step")
@@ -40,82 +33,37 @@ AUTORESET_MODES = (None, "next_step", "same_step")
 class BatchedShapeControl:
     """B independent shape-control episodes in torch: tensors in, tensors out, on the simulator's device.
 
-    Arguments (shared by the gymnasium envs):
-      num_envs: B.
-      target: "random" (one of TARGET_NAMES drawn at every reset, the thesis's default), "random_curve" (a smooth
-        random curve drawn at every reset, diffdlo.shapes.random_curve), a name in TARGET_NAMES, an (N, 2)
-        array/tensor, or a .npy/.yaml path. Drawn targets come from the env's per-env generator, seeded like the
-        start shapes.
-      obs_type: "points" (dict node_poses, target_poses (N, 2) float32: the multi-input observation),
-        "distance" ((N, 2) float32 rope - target per node: the single-input observation), "image" (dict
-        image, target_image: RGB uint8 (S, S, 3) of the rope and of the target) or "image_single" (dict
-        image: rope drawn over the target in one picture) or "perceived" (dict node_poses, target_poses like
-        "points", but READ from the "image" pictures, end markers drawn, by the perception network ``perception``:
-        diffdlo/perception.py; the target is read once per episode).
-      action_type: "node" (eq 2.6, [0, 1]^3: node = round(a0 (N-1)), dx, dy = a 2 s - s with s =
-        params.action_scale) or "pixel" (eq 2.5, [0, 1]^4: (a0, a1) = (column, row) fractions of the image view
-        window, row 0 at the top; the node nearest to that point is grasped; dx, dy as for "node").
-        Actions outside [0, 1] are clipped to [0, 1]; NaN/inf or a wrong shape raise ValueError.
-      reward: one of diffdlo.REWARDS ("position_orientation" eq 2.9-2.11, "abs_diff" eq 2.7, "delta_gain" eq 2.8,
-        "shape_gain": ours, the centimetres of shape error a move removed).
-      max_steps, success_tol: default params.max_episode_steps and params.success_tol.
-      max_episode_steps: gymnasium's time limit (``make_vec(..., max_episode_steps=)``; the registered spec's is
-        100): episodes are truncated after min(max_steps, max_episode_steps) moves, as ``gymnasium.make``'s
-        TimeLimit wrapper over the env's own truncation does. None (default): max_steps alone.
-      action_scale: s of the drag, dx, dy in [-s, s] [m] (default params.action_scale = 0.1): overrides the
-        params' value, > 0.
-      params: CableParams, params name or YAML path (resolved here, once). image_size: S (default 64). view_size:
-        side [m] of the square view window centred at the origin (default 1.0). device, dtype, backend: of the
-        simulator (backend "torch" forces the eager reference path).
-      success_bonus: reward of the successful move (default params.success_bonus = 20, Algorithm 2).
-      step_penalty: subtracted from the reward of every move that does not succeed (default 0: the thesis's).
-      on_exit: what happens when a node leaves the workspace: "truncate" (default, the thesis's Algorithm 2: the
-        episode is cut off, a learner bootstraps as after a time limit) or "fail" (ours: the episode TERMINATES
-        with reward -exit_penalty, so leaving pays nothing more, ever; success is still only is_success).
-      exit_penalty: the reward of a move that leaves the workspace under on_exit="fail" is -exit_penalty
-        (default 0).
-      curve_max_turn_deg: the largest turning angle per node of target="random_curve" (default 12 deg).
-      mark_end: image observations draw a dot on node 0 of the rope (green) and of the target (amber), so a rope
-        and its reversal look different (default False: the thesis's pictures, where they do not).
-      perception: obs_type="perceived" only: a perception checkpoint path (``python -m diffdlo.perception``) or a
-        ``diffdlo.perception.Perception``, made for these pictures (image_size, view_size, n_nodes).
-      perception_refine: analysis-by-synthesis steps after the network per picture (None: the checkpoint's; 0: the
-        network alone, the cheap reading for hundreds of ropes per step).
-      start: None (a random start shape, settled: thesis model.free) or a fixed (N, 2) start shape placed as is
-        after every reset (custom easy tasks): finite, with no two consecutive nodes closer than 10% of the rest
-        length (ValueError naming the nodes otherwise).
+    ``BatchedShapeControl(num_envs, options)`` or ``BatchedShapeControl(num_envs, **keywords)``: the task's options
+    are one ``EnvOptions`` (diffdlo/envs/options.py; each field's help says what it does), given as such or as its
+    field names (target, obs_type, action_type, reward, max_steps, success_tol, params, image_size, view_size,
+    success_bonus, step_penalty, on_exit, exit_penalty, curve_max_turn_deg, mark_end, start, max_episode_steps,
+    action_scale, perception, perception_refine), not both; the shared gymnasium envs take the same. ``options``
+    holds them resolved (the params, the episode length). num_envs: B. device, dtype, backend: of the simulator
+    (backend "torch" forces the eager reference path).
     Episode end: diffdlo.task.step_outcome (Algorithm 2 with the error metric). ``info["is_success"]`` tells a
     success from a failure: ``terminated`` alone does not, under on_exit="fail".
     """
 
-    def __init__(self, num_envs: int = 1, target: Any = "random", obs_type: str = "points", action_type: str = "node",
-                 reward: str = "position_orientation", max_steps: int | None = None, success_tol: float | None = None,
-                 params: CableParams | str | Path | None = None, image_size: int = 64,
-                 view_size: float = DEFAULT_VIEW_SIZE, device: torch.device | str = "cpu",
-                 dtype: torch.dtype = torch.float32, backend: str = "auto", success_bonus: float | None = None,
-                 step_penalty: float = 0.0, on_exit: str = "truncate", exit_penalty: float = 0.0,
-                 curve_max_turn_deg: float = CURVE_MAX_TURN_DEG, mark_end: bool = False, start: Any = None,
-                 max_episode_steps: int | None = None, action_scale: float | None = None, perception: Any = None,
-                 perception_refine: int | None = None):
-        p, self.rules = checked_options(
-            num_envs, obs_type, action_type, reward, max_steps, success_tol, params, image_size, view_size,
-            success_bonus, step_penalty, on_exit, exit_penalty, curve_max_turn_deg, max_episode_steps=max_episode_steps,
-            mark_end=mark_end, action_scale=action_scale)
-        self.params = p
+    def __init__(self, num_envs: int = 1, options: EnvOptions | None = None, *, device: torch.device | str = "cpu",
+                 dtype: torch.dtype = torch.float32, backend: str = "auto", **keywords: Any):
+        if not isinstance(num_envs, (int, np.integer)) or isinstance(num_envs, bool) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        self.options = o = env_options(options, keywords).resolve()
+        self.params = p = o.params
         # the perception reads a rope's order from the end marker: "perceived" pictures always carry it
-        self.curve_max_turn_deg, self.mark_end = float(curve_max_turn_deg), bool(mark_end) or obs_type == "perceived"
+        self.curve_max_turn_deg, self.mark_end = o.curve_max_turn_deg, o.mark_end or o.obs_type == "perceived"
         self.num_envs = int(num_envs)
-        self.obs_type, self.action_type = obs_type, action_type
-        self.image_size, self.view_size = int(image_size), float(view_size)
+        self.obs_type, self.action_type = o.obs_type, o.action_type
+        self.image_size, self.view_size = o.image_size, o.view_size
         self.sim = Simulator(p, device=device, dtype=dtype, backend=backend)
         self.device, self.dtype = self.sim.device, dtype
-        self.perception = self._load_perception(perception, perception_refine)
+        self.perception = self._load_perception(o.perception, o.perception_refine)
         self._seen_target: torch.Tensor | None = None          # the perceived targets, read once per episode
         self._named = {name: target_shape(name, p, self.device, dtype) for name in TARGET_NAMES}
-        self.start = None if start is None else self._check_start(start)
-        self.action_dim = ACTION_DIMS[action_type]
+        self.start = None if o.start is None else self._check_start(o.start)
+        self.action_dim = ACTION_DIMS[o.action_type]
         self.single_action_space = spaces.Box(0.0, 1.0, (self.action_dim,), np.float32)
-        self.single_observation_space = task.observation_space(obs_type, p, self.image_size)
+        self.single_observation_space = task.observation_space(o.obs_type, p, self.image_size)
 
         n, b, kw = p.n_nodes, self.num_envs, dict(device=self.device, dtype=dtype)
         self._state = EnvState(
@@ -125,23 +73,16 @@ class BatchedShapeControl:
                   "is_success": torch.zeros(b, dtype=torch.bool, device=self.device),
                   "node": torch.full((b,), -1, dtype=torch.int64, device=self.device),
                   "substeps": torch.zeros(b, dtype=torch.int64, device=self.device)},
-            target_names=[task.CUSTOM] * b, target_spec=task.resolve_target(target, p, self.device, dtype),
+            target_names=[task.CUSTOM] * b, target_spec=task.resolve_target(o.target, p, self.device, dtype),
             rngs=[None] * b, needs_reset=torch.zeros(b, dtype=torch.bool))
         self._pictures: task.TargetPictures | None = None     # the targets' image layers, drawn once per episode
         self.has_reset = False
 
-    def _load_perception(self, perception: Any, refine: Any):
+    def _load_perception(self, perception: Any, refine: int | None):
+        """The perception of obs_type "perceived" (EnvOptions checked that it is given) on the env's device."""
         if self.obs_type != "perceived":
-            if perception is not None or refine is not None:
-                raise ValueError(f"perception and perception_refine are read only by obs_type='perceived', got "
-                                 f"obs_type={self.obs_type!r}")
             return None
-        if refine is not None and (not isinstance(refine, (int, np.integer)) or isinstance(refine, bool) or refine < 0):
-            raise ValueError(f"perception_refine must be None or an integer >= 0, got {refine!r}")
         from ..perception import Perception, PerceptionError
-        if perception is None:
-            raise PerceptionError("obs_type='perceived' needs perception=PATH, a checkpoint of "
-                                  "python -m diffdlo.perception")
         if not isinstance(perception, Perception):
             return Perception.load(perception, self.device, refine_iters=refine, image_size=self.image_size,
                                    n_nodes=self.params.n_nodes, view_size=self.view_size)
@@ -157,15 +98,15 @@ class BatchedShapeControl:
     # ----------------------------------------------------------------- configuration and state
     @property
     def max_steps(self) -> int:
-        return self.rules.max_steps
+        return self.options.max_steps
 
     @property
     def success_tol(self) -> float:
-        return self.rules.success_tol
+        return self.options.success_tol
 
     @property
     def reward_type(self) -> str:
-        return self.rules.reward
+        return self.options.reward
 
     def _check_start(self, start: Any) -> torch.Tensor:
         s = torch.as_tensor(np.load(start) if isinstance(start, (str, Path)) else np.asarray(start, dtype=np.float64))
@@ -329,7 +270,7 @@ class BatchedShapeControl:
             s.pos[ids] = new
             s.steps[ids] += 1
             self._update_info(ids, new, target, node[ids], move_info.substeps)
-            r, term, trunc, _ = task.step_outcome(self.rules, prev, new, target, s.steps[ids])
+            r, term, trunc, _ = task.step_outcome(self.options, prev, new, target, s.steps[ids])
             reward[ids], terminated[ids], truncated[ids] = r, term, trunc
         ended = (terminated | truncated).cpu()
         if autoreset == "next_step":

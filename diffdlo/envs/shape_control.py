@@ -22,8 +22,9 @@ def to_numpy(x: Any, index: int | None = None) -> Any:
 class ShapeControlEnv(gym.Env):
     """``DiffDLO/ShapeControl-v0``: straighten and orient a planar cable by pick-drag-release actions.
 
-    A gymnasium wrapper of ``BatchedShapeControl`` with one rope; see that class for every keyword argument
-    (target, obs_type, action_type, reward, max_steps, success_tol, params, image_size, view_size, device, dtype).
+    A gymnasium wrapper of ``BatchedShapeControl`` with one rope: the task's options as ``options=EnvOptions(...)``
+    or as its keyword arguments (target, obs_type, action_type, reward, max_steps, ...: ``diffdlo.envs.EnvOptions``),
+    plus the simulator's device, dtype and backend.
     ``render_mode``: None or "rgb_array" (a 256 x 256 RGB picture, rope red over target blue).
 
     Actions outside [0, 1] are clipped to [0, 1]; NaN/inf actions or a wrong shape raise ValueError.

@@ -6,6 +6,7 @@ single ``ShapeControlEnv`` reset with seed s + i.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -14,7 +15,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .core import BatchedShapeControl
-from .options import _choice_error, check_actions
+from .options import EnvOptions, _choice_error, check_actions
 from .shape_control import to_numpy
 
 SUPPORTED_AUTORESET_MODES = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
@@ -34,8 +35,19 @@ def resolve_autoreset_mode(mode: Any) -> AutoresetMode:
     return resolved
 
 
+def with_time_limit(options: EnvOptions | None, keywords: dict[str, Any]) -> EnvOptions | None:
+    """``make_vec`` passes gymnasium's ``max_episode_steps`` (the spec's 100 unless given) beside any ``options``: an
+    episode then ends at the nearer of the two limits, as under ``gymnasium.make``'s TimeLimit."""
+    if options is None or "max_episode_steps" not in keywords:
+        return options
+    limit, own = keywords.pop("max_episode_steps"), options.max_episode_steps
+    nearer = limit if own is None or not isinstance(limit, int) or limit < 1 else min(own, limit)
+    return dataclasses.replace(options, max_episode_steps=nearer)
+
+
 class ShapeControlVectorEnv(VectorEnv):
-    """num_envs shape-control episodes on one ``BatchedShapeControl`` (same keyword arguments as the single env).
+    """num_envs shape-control episodes on one ``BatchedShapeControl`` (the same ``options`` or keyword arguments as
+    the single env).
 
     Actions (num_envs, A) outside [0, 1] are clipped; NaN/inf or a wrong shape raise ValueError. ``info`` holds
     numpy arrays (num_envs,) for shape_error, orientation_error, is_success, node, substeps, each with its
@@ -60,13 +72,15 @@ class ShapeControlVectorEnv(VectorEnv):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int = 1, render_mode: str | None = None,
-                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, **kwargs: Any):
+                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, options: EnvOptions | None = None,
+                 **kwargs: Any):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise _choice_error("render_mode", render_mode, [None, *self.metadata["render_modes"]])
         self.autoreset_mode = resolve_autoreset_mode(autoreset_mode)
         self.metadata = {**type(self).metadata, "autoreset_mode": self.autoreset_mode}
         self.render_mode = render_mode
-        self.core = BatchedShapeControl(num_envs=num_envs, **kwargs)
+        options = with_time_limit(options, kwargs)             # takes max_episode_steps out of kwargs
+        self.core = BatchedShapeControl(num_envs, options, **kwargs)
         self.num_envs = self.core.num_envs
         self.single_observation_space = self.core.single_observation_space
         self.single_action_space = self.core.single_action_space
