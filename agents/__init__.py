@@ -9,7 +9,7 @@ PlaNet's world models are in ``dynamics`` (the ensemble) and ``rssm``; ``openloo
 ``plot`` draws learning curves from the CSV logs.
 
 A trained run is used through ``policy`` (``agents.load_policy(RUN_DIR)``: the learner's networks rebuilt from its
-checkpoint, acting on one gymnasium observation or on batches) and ``evaluate`` (``python -m agents.evaluate
+checkpoint, acting on one gymnasium observation or on batches) and ``evaluate`` (``python -m agents.tools.evaluate
 RUN_DIR``: its success rate on the run's task or another target, final shapes and a GIF of the first episodes).
 """
 
@@ -19,6 +19,6 @@ __all__ = ["load_policy"]
 def __getattr__(name: str):
     """``agents.load_policy`` imported on first use: ``import agents`` stays light (no learner imported)."""
     if name == "load_policy":
-        from agents.policy import load_policy
+        from agents.tools.policy import load_policy
         return load_policy
     raise AttributeError(f"module 'agents' has no attribute {name!r}")

@@ -47,14 +47,14 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from agents import hybrid
-from agents.cli import run_cli
-from agents.config import SECTIONS, InputOptions, RunOptions, TaskOptions, part
-from agents.buffer import ReplayBuffer
-from agents.networks import Features, mlp
-from agents.run import Run, learner
+from agents.models import hybrid
+from agents.common.cli import run_cli
+from agents.common.config import SECTIONS, InputOptions, RunOptions, TaskOptions, part
+from agents.common.buffer import ReplayBuffer
+from agents.models.networks import Features, mlp
+from agents.common.run import Run, learner
 from agents.sac import HybridActor
-from diffdlo.checks import check_fields, option
+from diffdlo.utils.checks import check_fields, option
 from diffdlo.rewards import reward as move_reward, shape_error
 from diffdlo.task import decode_node_action, greedy_drags
 

@@ -4,7 +4,7 @@ in one file: config -> networks -> loop.
 
     python -m agents.distill --teacher runs/ppo --target random --total-steps 32768 --out runs/distill
 
-The teacher is a trained PPO run's hybrid policy acting by policy rollouts through the simulator (agents/rollout.py:
+The teacher is a trained PPO run's hybrid policy acting by policy rollouts through the simulator (agents/common/rollout.py:
 ``teacher_candidates`` first moves, each finished by the policy for ``teacher_moves`` moves, the fewest moves to the
 target kept). The student starts as a copy of that policy (same network, same feature normalization) and learns
 the teacher's moves by maximum likelihood on the states it visits itself (DAgger, Ross et al. 2011): every batched
@@ -15,7 +15,7 @@ becomes a copy of the student: the search is then guided by the policy that was 
 
 The result is a policy network that acts in about a millisecond a move, evaluated on its own (results.json); with
 ``--set rollout_candidates=C`` its final evaluation acts by rollouts over it instead (the policy alone is kept under
-"policy_alone"). Its checkpoint loads like a PPO one (``agents.policy.load_policy``, ``python -m agents.evaluate``).
+"policy_alone"). Its checkpoint loads like a PPO one (``agents.tools.policy.load_policy``, ``python -m agents.tools.evaluate``).
 The env steps are the student's (labelled states); the teacher's simulated rope-moves are reported as
 ``teacher_sim_evals``.
 """
@@ -30,14 +30,14 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from agents import hybrid
-from agents.cli import run_cli
-from agents.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
-from agents.policy import checkpoint_config, checkpoint_path, load_weights, read_checkpoint
+from agents.models import hybrid
+from agents.common.cli import run_cli
+from agents.common.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
+from agents.tools.policy import checkpoint_config, checkpoint_path, load_weights, read_checkpoint
 from agents.ppo import ActorCritic
-from agents.rollout import PolicyRollouts, check_rollout_obs
-from agents.run import Run, learner
-from diffdlo.checks import option
+from agents.common.rollout import PolicyRollouts, check_rollout_obs
+from agents.common.run import Run, learner
+from diffdlo.utils.checks import option
 
 # the network keys the student takes from its teacher's config (it starts as the teacher's policy)
 NETWORK_KEYS = ("policy", "hidden", "log_std_init", "inputs")

@@ -5,14 +5,14 @@ through it. CleanRL-style: config -> the chosen world model and its planner -> l
     python -m agents.planet --preset rssm --obs image --action pixel --out runs/planet-rssm-image
 
 Two world models (``model``):
-- "ensemble" (default, params/planet.yaml; agents/dynamics.py): PETS-style MLPs predicting one move's change of the
-  rope from the rope, the grasped node and the drag; planned through by ``agents.dynamics.ModelPlanner`` with the
+- "ensemble" (default, params/planet.yaml; agents/models/ensemble.py): PETS-style MLPs predicting one move's change of the
+  rope from the rope, the grasped node and the drag; planned through by ``agents.models.ensemble.ModelPlanner`` with the
   planners' cost (shape error of the predicted rope against the observed target). Points and node actions only.
-- "rssm" (params/planet-rssm.yaml; agents/rssm.py): PlaNet's recurrent state-space model, any observation, planned
-  in latent space by ``agents.rssm.LatentPlanner`` (``LatentObjective``: minus the predicted rewards, or the decoded
+- "rssm" (params/planet-rssm.yaml; agents/models/rssm.py): PlaNet's recurrent state-space model, any observation, planned
+  in latent space by ``agents.models.rssm.LatentPlanner`` (``LatentObjective``: minus the predicted rewards, or the decoded
   rope's shape error).
 
-Data: the ONE shared replay storage (agents/buffer.py). ``ReplayBuffer.sample_sequences`` returns L contiguous rows
+Data: the ONE shared replay storage (agents/common/buffer.py). ``ReplayBuffer.sample_sequences`` returns L contiguous rows
 of one rope that never cross an episode end (an end only at the last row) nor the write head, plus the observation
 after the last row (the stored final observation where the episode ended there, so the success reward is learned),
 masked out only when that row is the newest one and its next observation is not written yet. The ensemble draws
@@ -30,16 +30,16 @@ from typing import Any
 
 import torch
 
-from agents.buffer import ReplayBuffer
-from agents.checkpoints import replay_rows
-from agents.cli import run_cli
-from agents.config import SECTIONS, RunOptions, TaskOptions, part
-from agents.logs import fmt_postfix
-from agents.run import Run, learner
-from agents.dynamics import EnsembleDynamics, ModelPlanner, check_settings
-from agents.openloop import open_loop_eval, openloop_row, plot_open_loop
-from agents.rssm import RSSM, LatentPlanner
-from diffdlo.checks import check_fields, option
+from agents.common.buffer import ReplayBuffer
+from agents.common.checkpoints import replay_rows
+from agents.common.cli import run_cli
+from agents.common.config import SECTIONS, RunOptions, TaskOptions, part
+from agents.common.logs import fmt_postfix
+from agents.common.run import Run, learner
+from agents.models.ensemble import EnsembleDynamics, ModelPlanner, check_settings
+from agents.models.openloop import open_loop_eval, openloop_row, plot_open_loop
+from agents.models.rssm import RSSM, LatentPlanner
+from diffdlo.utils.checks import check_fields, option
 from diffdlo.params import CableParams
 from diffdlo.task import COORDINATE_OBS, POINT_OBS
 
@@ -50,9 +50,9 @@ class PlaNetConfig:
     task: TaskOptions = part(TaskOptions)
     run: RunOptions = part(RunOptions, total_steps=100_000, eval_every=10_000, checkpoint_every=10_000,
                            log_every=25)          # log_every: model updates
-    # model: "ensemble" (agents/dynamics.py, points only) or "rssm" (agents/rssm.py, PlaNet's)
+    # model: "ensemble" (agents/models/ensemble.py, points only) or "rssm" (agents/models/rssm.py, PlaNet's)
     model: str = option("ensemble", choices=("ensemble", "rssm"), help='"ensemble" (points only) or "rssm"')
-    # the ensemble (agents/dynamics.py); augment, frame and propagation are checked by dynamics.check_settings
+    # the ensemble (agents/models/ensemble.py); augment, frame and propagation are checked by dynamics.check_settings
     members: int = option(5, "[1, inf)", help="ensemble: its MLPs")
     model_hidden: list = option(factory=lambda: [200, 200, 200], layers=True, help="ensemble: each MLP's hidden layers")
     augment: list = option(factory=lambda: ["mirror", "reverse"], help="ensemble: the symmetries trained on")
@@ -60,7 +60,7 @@ class PlaNetConfig:
     propagation: str = option("members", help='ensemble: "members" or "mean", how the planning cost uses it')
     running_weight: float = option(0.5, "[0, inf)",
                                    help="ensemble's planning cost: weight of the mean intermediate shape error")
-    # the RSSM (agents/rssm.py)
+    # the RSSM (agents/models/rssm.py)
     deter: int = option(200, "[1, inf)", help="rssm: deterministic state size")
     stoch: int = option(30, "[1, inf)", help="rssm: stochastic state size")
     hidden: int = option(200, "[1, inf)", help="rssm: hidden layer width")

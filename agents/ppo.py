@@ -3,7 +3,7 @@ config -> networks -> loop.
 
     python -m agents.ppo --target random --obs points --action node --total-steps 1000000 --num-envs 16 --out runs/ppo
 
-Env: ``BatchedShapeControl`` directly (tensors end to end) through ``agents.envs.TrainEnv`` (one batched step, one
+Env: ``BatchedShapeControl`` directly (tensors end to end) through ``agents.common.envs.TrainEnv`` (one batched step, one
 masked reset of the ended ropes). Each rollout fills the shared ``ReplayBuffer`` from row 0 (n_steps rows x num_envs)
 with log-probs and values; GAE(lambda) bootstraps a truncated step from V(true final observation) and never a
 terminated one.
@@ -12,14 +12,14 @@ Two presets (``--preset``): ``tuned`` (the default, params/ppo.yaml) and ``sb3-d
 SB3's and the thesis's settings, kept as the comparison's labelled baseline). Their differences are config keys:
 
 - ``policy: hybrid`` (tuned): a categorical over the N nodes plus a Gaussian drag per node with a state-independent
-  log-std, mapped exactly onto the env's node action (agents/hybrid.py); the stored action is (k, d_x, d_y) and its
+  log-std, mapped exactly onto the env's node action (agents/models/hybrid.py); the stored action is (k, d_x, d_y) and its
   log-probability is log Cat(k) + log N(d | mu_k, std). ``policy: gaussian`` (sb3-default): a diagonal Gaussian over
   the env's box with a state-independent log-std (SB3/CleanRL); the raw sample u is stored and its log-probability
   used in the ratio, the env receives clip(u, 0, 1); the mean starts at 0.5 and the std at 0.5 (half of SB3's 1.0:
   our box [0, 1] is half as wide as SB3's usual [-1, 1]). Deterministic actions: the mode (argmax node, mean drag)
   or clip(mean, 0, 1).
 - ``features: relative`` + ``normalize_obs`` (tuned): target-relative features, running-normalized
-  (agents/hybrid.py); ``raw``: the observation flattened in rope lengths (and images through a CNN).
+  (agents/models/hybrid.py); ``raw``: the observation flattened in rope lengths (and images through a CNN).
 - the task's episode-end rules (``reward``, ``success_bonus``, ``on_exit``, ``exit_penalty``, ``step_penalty``: env
   keyword arguments, see BatchedShapeControl) and the scale of the rollouts (``num_envs``, ``n_steps``), the lr
   schedule (``anneal_lr``) and the discount.
@@ -36,13 +36,13 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from agents import hybrid
-from agents.buffer import ReplayBuffer
-from agents.cli import run_cli
-from agents.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
-from agents.networks import Features, mlp, shift_images
-from agents.run import Run, learner
-from diffdlo.checks import option
+from agents.models import hybrid
+from agents.common.buffer import ReplayBuffer
+from agents.common.cli import run_cli
+from agents.common.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
+from agents.models.networks import Features, mlp, shift_images
+from agents.common.run import Run, learner
+from diffdlo.utils.checks import option
 
 
 # ====================================================================== config (defaults: params/ppo.yaml)

@@ -2,7 +2,7 @@
 
     python -m agents.sac --target random --obs points --action node --total-steps 100000 --num-envs 16 --out runs/sac
 
-Env: ``BatchedShapeControl`` directly (tensors end to end) through ``agents.envs.TrainEnv``: one batched step of
+Env: ``BatchedShapeControl`` directly (tensors end to end) through ``agents.common.envs.TrainEnv``: one batched step of
 all ropes, then ONE masked reset of the ropes whose episode ended (same-step autoreset: the final observation is
 returned separately and stored in the replay buffer, so a truncated transition bootstraps from its true last
 observation; a terminated one does not bootstrap).
@@ -14,7 +14,7 @@ SB3's and the thesis's settings, the comparison's labelled baseline). Their poli
   [0, 1]^A, with the change-of-variables correction log pi(a) = log N(u) - sum log(0.5 (1 - tanh(u)^2)). Twin Q
   critics Q(s, a), target copies (Polyak tau), one automatic entropy temperature with target entropy -|A|.
 - ``policy: hybrid`` (tuned; a discrete-node SAC): the actor gives a categorical pi(k | s) over the N nodes and a
-  tanh-Gaussian drag pi(d | s, k) for every node (agents/hybrid.py maps (k, d) onto the env's node action). Twin
+  tanh-Gaussian drag pi(d | s, k) for every node (agents/models/hybrid.py maps (k, d) onto the env's node action). Twin
   critics Q(s, k, d) in ONE batched call (an ensemble of two networks, agents.sac.EnsembleLinear): a state trunk,
   then a per-node head whose first layer adds a node embedding and the node's drag. The bootstrap target and the
   actor loss take the expectation over the N nodes exactly (every node's drag sampled), as discrete SAC does
@@ -36,14 +36,14 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from agents import hybrid
-from agents.buffer import ReplayBuffer
-from agents.checkpoints import replay_rows
-from agents.cli import run_cli
-from agents.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
-from agents.networks import Features, mlp, shift_images
-from agents.run import Run, learner
-from diffdlo.checks import option
+from agents.models import hybrid
+from agents.common.buffer import ReplayBuffer
+from agents.common.checkpoints import replay_rows
+from agents.common.cli import run_cli
+from agents.common.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
+from agents.models.networks import Features, mlp, shift_images
+from agents.common.run import Run, learner
+from diffdlo.utils.checks import option
 
 
 # ====================================================================== config (defaults: params/sac.yaml)

@@ -29,9 +29,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from diffdlo.files import OutBusyError, out_lock, write_json_atomic
+from diffdlo.utils.files import OutBusyError, out_lock, write_json_atomic
 from diffdlo.params import load_params
-from diffdlo.signals import exit_code, stop_on_signals
+from diffdlo.utils.signals import exit_code, stop_on_signals
 from planners.cem import CEMPlanner
 from planners.common import build_run, run_episode
 

@@ -14,7 +14,7 @@ import warnings
 import torch
 
 import diffdlo
-from diffdlo import kernel
+from diffdlo.backends import kernel
 from diffdlo.params import PARAMS_DIR
 
 
@@ -33,7 +33,7 @@ def backend_line() -> str:
 def gpu_backend_line() -> str:
     """What ``backend="auto"`` runs on CUDA tensors: the Triton kernels (forward and adjoint) where triton imports,
     else the eager torch path and why."""
-    from diffdlo import triton_kernel
+    from diffdlo.backends import triton_kernel
     reason = triton_kernel.unavailable_reason()
     if reason is not None:
         return f"eager torch path: {reason}"

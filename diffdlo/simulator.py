@@ -10,7 +10,8 @@ from typing import Any
 
 import torch
 
-from . import control, kernel, shapes, triton_kernel
+from . import control, shapes
+from .backends import kernel, triton_kernel
 from .forces import energy, internal_forces
 from .integrate import max_speed, semi_implicit_step
 from .params import CableParams, load_params
@@ -77,9 +78,9 @@ class Simulator:
     """Batched planar mass-spring cable on ``device`` in ``dtype``. docs/SIMULATOR.md "Use the simulator" shows the API.
 
     ``backend``: "torch" is the eager reference path (every controller, any device); "kernel" is the fused C++
-    CPU kernel (kinematic controller; diffdlo/csrc/cable.cpp) with a hand-written adjoint, per-rope physics and
+    CPU kernel (kinematic controller; diffdlo/backends/csrc/cable.cpp) with a hand-written adjoint, per-rope physics and
     frame recording included; "auto" (default) uses the kernel where it applies (CPU tensors, kinematic drag) and
-    the torch path elsewhere. "triton" is the fused Triton kernel (diffdlo/triton_kernel.py: one launch per move and
+    the torch path elsewhere. "triton" is the fused Triton kernel (diffdlo/backends/triton_kernel.py: one launch per move and
     one for its adjoint, kinematic controller, per-rope physics and frame recording included) on CUDA tensors, or
     on CPU tensors in Triton's interpreter (TRITON_INTERPRET=1); "auto" picks it on CUDA where triton imports and
     the controller is kinematic.

@@ -27,7 +27,7 @@ from gymnasium import spaces
 from . import image as rimage
 from .params import CableParams
 from .rewards import orientation_error, reward as move_reward, shape_error
-from .shapes import (CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape)
+from .shapes import CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape
 
 if TYPE_CHECKING:                      # the env's options are built on this module's names: no import at run time
     from .envs.options import EnvOptions

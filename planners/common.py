@@ -6,13 +6,13 @@ re-seeded with the episode's seed, so an episode's plan does not depend on the e
 its first action in ``BatchedShapeControl`` and replans until success (shape_error < success_tol) or max_steps.
 Episode i starts from ``env.reset(seed=seed + i)``; with ``--target random`` or ``random_curve`` (a family in
 diffdlo.shapes.TARGET_FAMILIES) that reset also draws episode i's target, recorded under the episode in results.json.
-That is the learners' evaluation rule too (agents/evaluation.py: episode i of a one-rope or batched evaluation env
+That is the learners' evaluation rule too (agents/common/evaluation.py: episode i of a one-rope or batched evaluation env
 reset with seed s is ``reset(seed=s + i)`` of one rope), so a planner and a learner evaluated with the same seed see
 the same start shapes and targets, episode by episode (tests/test_paired_episodes.py).
 
 Model mismatch: ``--params`` are the model's, the planner plans with a Simulator of those; ``--real-params`` and
 ``--real-scale`` give the "real" rope that the env moves and scores. The real rope must decode an action into the same
-move (n_nodes, length, action_scale, max_disp equal). ``build_run`` builds the pair (used by benchmarks/mismatch.py).
+move (n_nodes, length, action_scale, max_disp equal). ``build_run`` builds the pair (used by benchmarks/studies/mismatch.py).
 """
 from __future__ import annotations
 
@@ -27,10 +27,10 @@ import torch
 from tqdm import tqdm
 
 from diffdlo import task
-from diffdlo.checks import check_interval
+from diffdlo.utils.checks import check_interval
 from diffdlo.envs import BatchedShapeControl, EnvOptions
-from diffdlo.signals import exit_code, stop_on_signals
-from diffdlo.files import OutBusyError, check_fresh_out, out_lock, shapes_record, write_json_atomic
+from diffdlo.utils.signals import exit_code, stop_on_signals
+from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, shapes_record, write_json_atomic
 from diffdlo.params import CableParams, ParamsError, load_params
 from diffdlo.physics import PHYSICAL, physical_values, scaled_params   # what a scale may change
 from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError

@@ -27,7 +27,7 @@ from diffdlo.simulator import Simulator
 def sequence_cost(states: list[torch.Tensor], target: torch.Tensor, running_weight: float = 0.0) -> torch.Tensor:
     """The planners' cost of a rolled-out sequence: shape_error after the last of the H states (each (..., N, 2)),
     plus ``running_weight`` times the mean error of the H - 1 intermediate ones. Shared by the simulator's objective
-    and a learned model's (agents/dynamics.py), so both plan for the same thing."""
+    and a learned model's (agents/models/ensemble.py), so both plan for the same thing."""
     cost = shape_error(states[-1], target)
     if len(states) > 1 and running_weight > 0:
         cost = cost + running_weight * sum(shape_error(s, target) for s in states[:-1]) / (len(states) - 1)

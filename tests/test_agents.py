@@ -8,11 +8,11 @@ import torch
 
 import diffdlo
 from agents import ppo, sac
-from agents.checkpoints import CHECKPOINT
-from agents.config import load_config
-from agents.envs import make_env
-from agents.evaluation import evaluate
-from agents.logs import read_csv
+from agents.common.checkpoints import CHECKPOINT
+from agents.common.config import load_config
+from agents.common.envs import make_env
+from agents.common.evaluation import evaluate
+from agents.common.logs import read_csv
 
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
@@ -56,7 +56,7 @@ def test_a_killed_run_resumes_exactly_with_its_normalizer_and_lr_schedule(algo, 
         return [("anneal_lr=true" if x == "anneal_lr=false" else x) for x in argv(algo, out, 384)]
 
     assert m.main(args(a)) == 0
-    from agents import run as run_module
+    from agents.common import run as run_module
     real_save = run_module.save_checkpoint
 
     def save_then_die(path, state):
@@ -131,7 +131,7 @@ def test_cli_smoke_writes_everything_and_resumes(algo, obs, action, tmp_path, ca
 
 
 def test_plot_command(tmp_path):
-    from agents import plot
+    from agents.tools import plot
     assert sac.main(argv("sac", tmp_path / "run", 192)) == 0
     assert plot.main(["--runs", str(tmp_path / "run"), "--out", str(tmp_path / "curves.png")]) == 0
     assert (tmp_path / "curves.png").stat().st_size > 1000
@@ -171,7 +171,7 @@ def test_tensorboard_logging_when_installed(tmp_path):
 def test_evaluate_returns_each_episodes_own_final_rope_and_target():
     """Regression: targets were views of the env's target tensor, overwritten in place by the next wave's reset."""
     import diffdlo
-    from agents.evaluation import evaluate
+    from agents.common.evaluation import evaluate
     from diffdlo.envs import BatchedShapeControl
 
     p = dataclasses.replace(diffdlo.load_params(), n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30,
@@ -185,7 +185,7 @@ def test_evaluate_returns_each_episodes_own_final_rope_and_target():
 
 
 def test_replay_buffer_is_sized_to_the_run_and_refused_past_free_memory(capsys):
-    from agents.checkpoints import replay_rows
+    from agents.common.checkpoints import replay_rows
     obs = {"image": torch.zeros(4, 64, 64, 3, dtype=torch.uint8)}
     assert replay_rows(1_000_000, 64, 16, obs, free=10**12) == 5          # a 64-step run holds 4 rows (+1)
     assert "5 rows x 16 envs x 12.3 kB" in capsys.readouterr().err      # the size of an image buffer is printed

@@ -10,8 +10,8 @@ import torch
 import diffdlo
 from diffdlo.envs import BatchedShapeControl
 from agents import apg
-from agents.config import load_config
-from agents.logs import read_csv
+from agents.common.config import load_config
+from agents.common.logs import read_csv
 
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"
@@ -192,7 +192,7 @@ def test_a_killed_run_resumes_exactly(extra, tmp_path, monkeypatch):
     uninterrupted run's (lr schedule, normalizer, critic, sampled nodes)."""
     a, b = tmp_path / "a", tmp_path / "b"
     assert apg.main(argv(a, 256, *extra)) == 0
-    from agents import run as run_module
+    from agents.common import run as run_module
     real_save = run_module.save_checkpoint
 
     def save_then_die(path, state):
@@ -220,7 +220,7 @@ def test_a_killed_run_resumes_exactly(extra, tmp_path, monkeypatch):
 
 def test_load_policy_acts_as_the_run_evaluated(tmp_path):
     from agents import load_policy
-    from agents.evaluation import evaluate
+    from agents.common.evaluation import evaluate
     out = tmp_path / "run"
     assert apg.main(argv(out, 64)) == 0
     pol = load_policy(out)

@@ -1,8 +1,8 @@
-"""agents.buffer.ReplayBuffer: samplers respect episode ends and the write head, GAE, truncation, state_dict."""
+"""agents.common.buffer.ReplayBuffer: samplers respect episode ends and the write head, GAE, truncation, state_dict."""
 import pytest
 import torch
 
-from agents.buffer import ReplayBuffer
+from agents.common.buffer import ReplayBuffer
 
 E = 2
 

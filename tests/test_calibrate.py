@@ -1,4 +1,4 @@
-"""Calibration (diffdlo.calibrate) on a tiny synthetic recording: the fit recovers what positions over time can
+"""Calibration (diffdlo.calibration.calibrate) on a tiny synthetic recording: the fit recovers what positions over time can
 identify (the stiffness-to-damping ratios) and the curvature says the absolute values are not identifiable."""
 import dataclasses
 import math
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo import calibrate
+from diffdlo.calibration import calibrate
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_the_block_step_equals_the_dense_gauss_newton_step(case):
 def test_fitting_the_start_shapes_removes_the_noisy_starts_bias():
     """Replayed from noisy recorded starts the fitted ratios are biased; fitting the starts too removes it, and a
     move the replay cannot follow is left out by name."""
-    from diffdlo.record import make_recording
+    from diffdlo.calibration.record import make_recording
     p = diffdlo.load_params("cable", n_nodes=8, length=0.2, settle_max_substeps=200, settle_check_every=50)
     scale = {"k_s": 1.4, "k_b": 0.7}
     rec = make_recording(p, 6, seed=0, noise=1e-3, record_every=20, scale=scale)
@@ -146,8 +146,8 @@ def test_bad_calibration_flags_are_named(extra, message, tmp_path, capsys):
 
 
 def test_a_recording_file_is_calibrated_through_the_same_path(tmp_path):
-    from diffdlo.record import make_recording
-    from diffdlo.recording import save_recording
+    from diffdlo.calibration.record import make_recording
+    from diffdlo.calibration.recording import save_recording
     p = diffdlo.load_params("cable", n_nodes=5, length=0.12, max_speed=1.0, settle_max_substeps=40,
                             settle_check_every=4, settle_threshold=0.0)
     rec = make_recording(p, 3, seed=1, record_every=4, scale={"k_s": 1.5})

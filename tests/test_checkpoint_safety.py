@@ -1,5 +1,5 @@
-"""A checkpoint cannot run code: every entry point that reads one (load_policy, python -m agents.evaluate, a learner's
---resume, benchmarks/planet_budget.py, benchmarks/apg_gradients.py) reads it with torch.load(weights_only=True) and
+"""A checkpoint cannot run code: every entry point that reads one (load_policy, python -m agents.tools.evaluate, a learner's
+--resume, benchmarks/studies/planet_budget.py, benchmarks/gradients/apg_gradients.py) reads it with torch.load(weights_only=True) and
 refuses a file that needs more than data, naming what it would need, before anything in it runs. Checkpoints of an
 earlier version (numpy's RNG state as an array) still load and can be rewritten with --upgrade."""
 from __future__ import annotations
@@ -8,10 +8,11 @@ import pytest
 import torch
 
 import agents
-from agents import checkpoints, ppo
-from agents import evaluate as evaluate_cli
-from agents.checkpoints import CHECKPOINT, load_checkpoint
-from agents.config import load_config
+from agents.common import checkpoints
+from agents import ppo
+from agents.tools import evaluate as evaluate_cli
+from agents.common.checkpoints import CHECKPOINT, load_checkpoint
+from agents.common.config import load_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -71,12 +72,12 @@ def test_a_planted_payload_is_refused_and_never_runs(entry, run, tmp_path, capsy
             ppo.main(["--out", str(folder), "--resume", "--no-progress"])
         assert exc.value.code == 2
     elif entry == "planet_budget":
-        from benchmarks import planet_budget
+        from benchmarks.studies import planet_budget
         with pytest.raises(SystemExit) as exc:
             planet_budget.main(["--run", str(folder), "--out", str(tmp_path / "budget")])
         assert exc.value.code == 2
     else:
-        from benchmarks import apg_gradients
+        from benchmarks.gradients import apg_gradients
         with pytest.raises(SystemExit) as exc:
             apg_gradients.main(["--run", str(folder)])
         assert exc.value.code == 2

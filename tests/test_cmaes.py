@@ -1,9 +1,9 @@
-"""The CMA-ES baseline of benchmarks/calibration.py finds the minimum of an ill-conditioned rotated quadratic."""
+"""The CMA-ES baseline of benchmarks/studies/calibration.py finds the minimum of an ill-conditioned rotated quadratic."""
 import math
 
 import torch
 
-from benchmarks.cmaes import cma_es
+from benchmarks.studies.cmaes import cma_es
 
 
 def test_cma_es_minimizes_a_rotated_ill_conditioned_quadratic():

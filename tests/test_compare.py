@@ -417,7 +417,7 @@ def test_a_learner_is_charged_the_simulation_it_acts_and_trains_with():
     from benchmarks.compare.stats import row_stats
     episode = {"success": True, "steps": 10, "final_error": 0.005, "start_error": 0.1, "target_name": "diagonal"}
     alone = {"episodes": [episode] * 2, "env_steps": 1000, "wall_s": 60.0, "eval_s_per_episode": 0.01}
-    rollouts = {**alone, "sim_evals_per_move": 150.0}                      # agents/rollout.py
+    rollouts = {**alone, "sim_evals_per_move": 150.0}                      # agents/common/rollout.py
     distilled = {**alone, "teacher_sim_evals": 5000}                        # agents/distill.py
     cost = {name: row_cost("ppo", [r], row_stats([r])) for name, r in
             [("alone", alone), ("rollouts", rollouts), ("distilled", distilled)]}

@@ -226,7 +226,7 @@ def test_every_file_the_harness_writes_goes_through_a_rename(tiny):
 
 
 def test_a_failed_rewrite_leaves_the_old_file_and_no_temporary(tmp_path):
-    from diffdlo.files import replacing, write_text_atomic
+    from diffdlo.utils.files import replacing, write_text_atomic
 
     target = tmp_path / "cell.json"
     target.write_text("old")

@@ -6,11 +6,11 @@ import pytest
 import torch
 
 from agents import distill, ppo
-from agents.config import from_flat
+from agents.common.config import from_flat
 from agents.distill import Labels, fit, stored_action
-from agents.envs import TrainEnv
-from agents.logs import read_csv
-from agents.policy import load_policy
+from agents.common.envs import TrainEnv
+from agents.common.logs import read_csv
+from agents.tools.policy import load_policy
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.params import load_params
 from diffdlo.task import encode_node_action, greedy_drags

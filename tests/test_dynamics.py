@@ -1,4 +1,4 @@
-"""The ensemble world model (agents/dynamics.py): its symmetries hold in the simulator, it learns, its k-step error
+"""The ensemble world model (agents/models/ensemble.py): its symmetries hold in the simulator, it learns, its k-step error
 and planning cost are what they claim, and PlaNet with it resumes exactly and solves a tiny task."""
 import dataclasses
 import json
@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from agents import planet
-from agents.checkpoints import CHECKPOINT
-from agents.config import load_config
-from agents.logs import read_csv
-from agents.dynamics import EnsembleDynamics, ModelObjective, k_step_errors
+from agents.common.checkpoints import CHECKPOINT
+from agents.common.config import load_config
+from agents.common.logs import read_csv
+from agents.models.ensemble import EnsembleDynamics, ModelObjective, k_step_errors
 from diffdlo.params import load_params
 from diffdlo.rewards import shape_error
 from diffdlo.simulator import Simulator
@@ -187,7 +187,7 @@ def test_tiny_task_is_solved_by_planning_through_the_learned_model(tmp_path):
     assert planet.main(argv(tmp_path, 640, *extra)) == 0
     res = json.loads((tmp_path / "results.json").read_text())
     assert res["success_rate"] >= 0.75, res["success_rate"]
-    from benchmarks import planet_budget
+    from benchmarks.studies import planet_budget
     budget = tmp_path / "budget"
     assert planet_budget.main(["--run", str(tmp_path), "--out", str(budget), "--candidates", "64", "8",
                                "--iterations", "3", "--propagations", "members", "mean", "--episodes", "4"]) == 0

@@ -1,4 +1,4 @@
-"""agents.load_policy and python -m agents.evaluate: a trained run's checkpoint acts on the gymnasium env, reproduces
+"""agents.load_policy and python -m agents.tools.evaluate: a trained run's checkpoint acts on the gymnasium env, reproduces
 the run's own final evaluation, is evaluated and watched from the command line; broken checkpoints are named."""
 import json
 
@@ -8,11 +8,11 @@ import pytest
 import torch
 
 import agents
-from agents import evaluate as evaluate_cli
+from agents.tools import evaluate as evaluate_cli
 from agents import planet, ppo, sac
-from agents.checkpoints import CHECKPOINT
-from agents.config import load_config
-from agents.evaluation import evaluate
+from agents.common.checkpoints import CHECKPOINT
+from agents.common.config import load_config
+from agents.common.evaluation import evaluate
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -7,8 +7,10 @@ import pytest
 import torch
 
 import diffdlo
-from agents import config, hybrid, ppo, sac
-from agents.config import load_config, preset_path
+from agents.common import config
+from agents.models import hybrid
+from agents import ppo, sac
+from agents.common.config import load_config, preset_path
 from diffdlo.envs import BatchedShapeControl
 
 

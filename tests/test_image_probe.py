@@ -1,9 +1,9 @@
-"""benchmarks.image_probe: a tiny probe runs, writes results.json, and never overwrites one without --overwrite."""
+"""benchmarks.studies.image_probe: a tiny probe runs, writes results.json, and never overwrites one without --overwrite."""
 import json
 
 import pytest
 
-from benchmarks import image_probe
+from benchmarks.studies import image_probe
 
 
 def test_probe_writes_results_and_refuses_to_overwrite(tmp_path, capsys):

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from agents import ppo, sac
-from agents.checkpoints import CHECKPOINT
-from agents.config import load_config
-from agents.networks import KeypointCNN, random_shift, shift_images
+from agents.common.checkpoints import CHECKPOINT
+from agents.common.config import load_config
+from agents.models.networks import KeypointCNN, random_shift, shift_images
 from diffdlo import image as rimage
 from diffdlo.envs import BatchedShapeControl
 

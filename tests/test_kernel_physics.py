@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo import kernel
+from diffdlo.backends import kernel
 from diffdlo.physics import PHYSICAL, Physics
 from tests.conftest import crumpled
 

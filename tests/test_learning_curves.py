@@ -1,7 +1,7 @@
-"""benchmarks.learning_curves: the per-step table across runs, and its refusals."""
+"""benchmarks.studies.learning_curves: the per-step table across runs, and its refusals."""
 import pytest
 
-from benchmarks import learning_curves
+from benchmarks.studies import learning_curves
 
 
 def write_eval(folder, rows):

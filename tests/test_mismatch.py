@@ -1,12 +1,12 @@
 """Planning under model mismatch: the planner's model (--params) and the real rope the env moves (--real-params,
---real-scale), and benchmarks/mismatch.py."""
+--real-scale), and benchmarks/studies/mismatch.py."""
 import json
 
 import pytest
 import torch
 
 import diffdlo
-from benchmarks import mismatch
+from benchmarks.studies import mismatch
 from planners import SimObjective
 from planners import cem as cem_mod
 from planners.cem import CEMPlanner

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo import kernel
+from diffdlo.backends import kernel
 from diffdlo.__main__ import main as diffdlo_main
 from diffdlo.params import PARAMS_DIR
 
@@ -26,7 +26,7 @@ NOT_SOURCES = shutil.ignore_patterns(".git", ".venv", "runs", "build", "dist", "
 WHEEL_SMOKE = """
 import gymnasium as gym, diffdlo
 from agents import sac
-from agents.config import PARAMS_DIR, load_config, preset_path
+from agents.common.config import PARAMS_DIR, load_config, preset_path
 from diffdlo.params import PARAMS_DIR as CABLE_PARAMS_DIR
 env = gym.make("DiffDLO/ShapeControl-v0")
 env.reset(seed=0)
@@ -90,7 +90,7 @@ def test_installed_wheel_runs_the_env_and_loads_presets_outside_the_repository(i
 
 def test_a_source_checkout_reads_the_repository_params():
     """In the repository (editable install) the files are the ones the README names: params/ at the root."""
-    from agents import config
+    from agents.common import config
     assert PARAMS_DIR == ROOT / "params" and config.PARAMS_DIR == PARAMS_DIR
     assert config.preset_path("sac", None) == ROOT / "params" / "sac.yaml"
 
@@ -125,7 +125,7 @@ def test_info_reports_version_backend_torch_devices_threads_and_params(capsys):
     assert diffdlo.__version__ in out and "torch:" in out and torch.__version__ in out
     backend = "fused C++ kernel" if kernel.available() else "eager torch path"
     assert f"simulator backend: {backend}" in out
-    from diffdlo import triton_kernel
+    from diffdlo.backends import triton_kernel
     gpu = "fused Triton kernels, forward and adjoint" if triton_kernel.available() else "eager torch path: triton"
     assert re.search(rf"on CUDA devices: +{gpu}", out), out
     assert "devices:" in out and "cpu" in out

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from agents.evaluation import evaluate
+from agents.common.evaluation import evaluate
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.params import load_params
 from planners.common import build_run, run_episode

@@ -1,4 +1,4 @@
-"""Perception (diffdlo/perception.py): training lowers the error, refinement inverts the renderer, checkpoints are
+"""Perception (diffdlo/perception/network.py): training lowers the error, refinement inverts the renderer, checkpoints are
 safe and named, the env's "perceived" observation is read from pictures only, and a learner trains on it."""
 import argparse
 import dataclasses
@@ -13,9 +13,9 @@ import torch
 
 import diffdlo
 from agents import ppo
-from agents.config import load_config
-from agents.envs import make_env
-from agents.evaluation import evaluate
+from agents.common.config import load_config
+from agents.common.envs import make_env
+from agents.common.evaluation import evaluate
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.perception import (Perception, PerceptionError, PerceptionNet, TrainConfig, held_out, main, node_error,
                                 refine, render_uint8, sample_shapes, train)
@@ -147,7 +147,7 @@ def test_a_tiny_perceived_task_learns_and_acts_from_pixels_alone(tiny, tmp_path)
     res = ppo.train(cfg, tmp_path / "ppo", progress=False)
     assert res["success_rate"] >= random_res["success_rate"] + 0.5, (res["success_rate"], random_res)
 
-    from agents.policy import load_policy
+    from agents.tools.policy import load_policy
     policy = load_policy(tmp_path / "ppo")
     perceived = BatchedShapeControl(num_envs=4, obs_type="perceived", perception=out, params=p, image_size=32,
                                     target="random")
@@ -161,7 +161,7 @@ def test_a_tiny_perceived_task_learns_and_acts_from_pixels_alone(tiny, tmp_path)
 
 
 def test_training_resumes_exactly(tmp_path, monkeypatch):
-    import diffdlo.perception as perception_module
+    import diffdlo.perception.network as perception_module
     p = dataclasses.replace(diffdlo.load_params(), **PO)
     cfg = TrainConfig(image_size=32, steps=8, batch=8, pool=16, eval_pictures=8, eval_every=4, refine_iters=2)
     train(tmp_path / "a", cfg, p, progress=False)
@@ -192,7 +192,7 @@ def test_obs_image_alone_gives_a_config_that_reads_pictures(algo, tmp_path, caps
     presets follow it (features raw, no normalization), and PlaNet takes its picture preset (the RSSM)."""
     import importlib
 
-    from agents.cli import config_from_args, make_parser
+    from agents.common.cli import config_from_args, make_parser
     module = importlib.import_module(f"agents.{algo}")
     cls = {"sac": "SACConfig", "ppo": "PPOConfig", "planet": "PlaNetConfig"}[algo]
     ap = make_parser(f"python -m agents.{algo}", None)

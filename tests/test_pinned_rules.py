@@ -2,16 +2,16 @@
 
 * eq 2.6's node is round(a0 (N - 1)), not floor (diffdlo/task.py decode_node);
 * the ensemble world model is equivariant under translations and rotations: its prediction, made in the grasped
-  node's frame, is rotated back with the inverse rotation (agents/dynamics.py);
-* the Levenberg-Marquardt step uses its damping (diffdlo/calibrate.py Linearization.step).
+  node's frame, is rotated back with the inverse rotation (agents/models/ensemble.py);
+* the Levenberg-Marquardt step uses its damping (diffdlo/calibration/calibrate.py Linearization.step).
 """
 import math
 
 import pytest
 import torch
 
-from agents.dynamics import EnsembleDynamics
-from diffdlo.calibrate import Linearization
+from agents.models.ensemble import EnsembleDynamics
+from diffdlo.calibration.calibrate import Linearization
 from diffdlo.params import load_params
 from diffdlo.task import decode_node, decode_node_action, encode_node_action
 

@@ -1,4 +1,4 @@
-"""agents.planet / agents.rssm: RSSM shapes and ELBO terms, free nats, chunk sampling, overfitting, latent CEM,
+"""agents.planet / agents.models.rssm: RSSM shapes and ELBO terms, free nats, chunk sampling, overfitting, latent CEM,
 open-loop evaluation, CLI smoke runs (points and images) with resume."""
 import json
 import math
@@ -7,13 +7,14 @@ import pytest
 import torch
 
 import diffdlo
-from agents import openloop, planet
-from agents.buffer import ReplayBuffer
-from agents.checkpoints import CHECKPOINT
-from agents.config import load_config
-from agents.envs import make_env
-from agents.logs import read_csv
-from agents.rssm import RSSM, LatentObjective, LatentPlanner, free_nats_kl, gauss_kl
+from agents.models import openloop
+from agents import planet
+from agents.common.buffer import ReplayBuffer
+from agents.common.checkpoints import CHECKPOINT
+from agents.common.config import load_config
+from agents.common.envs import make_env
+from agents.common.logs import read_csv
+from agents.models.rssm import RSSM, LatentObjective, LatentPlanner, free_nats_kl, gauss_kl
 from planners.cem import CEM
 
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
@@ -263,8 +264,8 @@ def test_resume_equals_uninterrupted(tmp_path):
 
 def stop_when(calls_of, obj, name, after, when=lambda *a, **k: True):
     """Wrap ``obj.name`` so that its ``after``-th call among those where ``when(*args)`` holds asks the running
-    learner to stop, as the first SIGTERM does (agents/run.py's stop request)."""
-    from agents import run as run_mod
+    learner to stop, as the first SIGTERM does (agents/common/run.py's stop request)."""
+    from agents.common import run as run_mod
     inner = getattr(obj, name)
 
     def wrapped(*args, **kw):
@@ -319,7 +320,7 @@ def test_a_stop_within_a_step_resumes_as_the_uninterrupted_run(where, uninterrup
 
 
 def test_world_model_benchmark_runs(capsys):
-    from benchmarks import planet_model
+    from benchmarks.studies import planet_model
     assert planet_model.main(["--preset", "rssm", "--updates", "2", "--moves", "12", "--envs", "3", "--set", TINY, "--set", "batch_size=4",
                               "--set", "chunk_length=4", "--set", "openloop_episodes=3", "--set", "deter=8",
                               "--set", "stoch=2", "--set", "hidden=8", "--set", "embed=8"]) == 0

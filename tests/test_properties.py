@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 import diffdlo
 from agents import ppo, sac
-from agents.config import flat_names, flat_value, load_config
+from agents.common.config import flat_names, flat_value, load_config
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.forces import internal_forces
 from diffdlo.shapes import TargetError, straight_shape, target_shape

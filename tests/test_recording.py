@@ -1,4 +1,4 @@
-"""The recording format (diffdlo/recording.py) and the simulator-made recording (python -m diffdlo.record): exact
+"""The recording format (diffdlo/calibration/recording.py) and the simulator-made recording (python -m diffdlo.calibration.record): exact
 round trips, frames that are the simulator's moves, noise and dropout as asked, every malformed file refused naming
 its field, and the command line's guards."""
 import dataclasses
@@ -14,9 +14,9 @@ import torch
 import yaml
 
 import diffdlo
-from diffdlo import record
+from diffdlo.calibration import record
 from diffdlo.params import PARAMS_DIR
-from diffdlo.recording import Recording, RecordingError, load_recording, recording_arrays, save_recording
+from diffdlo.calibration.recording import Recording, RecordingError, load_recording, recording_arrays, save_recording
 
 RECORD_EVERY = 10
 
@@ -284,12 +284,12 @@ def test_cli_rejects_bad_flags_in_one_line(flags, named, tmp_path, capsys, monke
     argv = ["--out", str(tmp_path / "r.npz"), "--moves", "1"] + flags
     assert record.main(argv) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("python -m diffdlo.record: error:") and named in err
+    assert err.count("\n") == 1 and err.startswith("python -m diffdlo.calibration.record: error:") and named in err
     assert not list(tmp_path.iterdir())
 
 
 def test_the_module_runs_and_exits_2_on_a_bad_flag(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "diffdlo.record", "--out", str(tmp_path / "r.npz"), "--noise",
+    result = subprocess.run([sys.executable, "-m", "diffdlo.calibration.record", "--out", str(tmp_path / "r.npz"), "--noise",
                              "-1"], capture_output=True, text=True, timeout=60,
                             env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert result.returncode == 2 and result.stderr.count("\n") == 1 and "'-1'" in result.stderr, result.stderr

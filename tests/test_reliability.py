@@ -7,7 +7,7 @@ import pytest
 
 from agents import planet, ppo
 from planners import greedy
-from diffdlo.files import OutBusyError, out_lock
+from diffdlo.utils.files import OutBusyError, out_lock
 
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"
 PLANET = ["--num-envs", "4", "--set", TINY, "--max-steps", "8", "--eval-every", "64", "--eval-episodes", "4",

@@ -1,4 +1,4 @@
-"""Acting by policy rollouts through the simulator (agents/rollout.py): the ranking, the rollouts' bookkeeping on a
+"""Acting by policy rollouts through the simulator (agents/common/rollout.py): the ranking, the rollouts' bookkeeping on a
 hand-built case, and the policy-improvement property on real episodes (never more moves than the base policy)."""
 import json
 import math
@@ -6,9 +6,9 @@ import math
 import pytest
 import torch
 
-from agents.envs import TrainEnv
-from agents.evaluation import evaluate
-from agents.rollout import PolicyRollouts, moves_to_success, rank
+from agents.common.envs import TrainEnv
+from agents.common.evaluation import evaluate
+from agents.common.rollout import PolicyRollouts, moves_to_success, rank
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.params import load_params
 from diffdlo.task import encode_node_action, greedy_drags
@@ -111,7 +111,7 @@ def test_rollouts_need_an_observation_that_shows_the_rope():
 
 def test_a_learner_acting_by_rollouts_keeps_its_policy_alone_result(tmp_path):
     from agents import ppo
-    from agents.config import from_flat
+    from agents.common.config import from_flat
     cfg = from_flat(ppo.PPOConfig, {"total_steps": 512, "num_envs": 32, "n_steps": 16, "batch_size": 256,
                                     "max_steps": 12, "eval_episodes": 2, "rollout_candidates": 3,
                                     "rollout_moves": 2, "policy": "hybrid", "features": "relative",
@@ -123,7 +123,7 @@ def test_a_learner_acting_by_rollouts_keeps_its_policy_alone_result(tmp_path):
     starts = [e["start_error"] for e in r["episodes"]]
     assert starts == [e["start_error"] for e in r["policy_alone"]["episodes"]]
     # any run's checkpoint acts by rollouts from the command line; a bad count is named
-    from agents.evaluate import main
+    from agents.tools.evaluate import main
     assert main([str(tmp_path / "run"), "--rollouts", "2", "--rollout-moves", "1", "--episodes", "2", "--no-gif",
                  "--out", str(tmp_path / "ev")]) == 0
     ev = json.loads((tmp_path / "ev" / "results.json").read_text())
@@ -133,16 +133,16 @@ def test_a_learner_acting_by_rollouts_keeps_its_policy_alone_result(tmp_path):
 
 def test_planet_refuses_to_act_by_rollouts(tmp_path):
     from agents import planet
-    from agents.config import from_flat
+    from agents.common.config import from_flat
     cfg = from_flat(planet.PlaNetConfig, {"total_steps": 64, "rollout_candidates": 4})
     with pytest.raises(ValueError, match="PlaNet already plans"):
         planet.train(cfg, tmp_path / "run", progress=False)
 
 
 def test_the_value_lookahead_never_bootstraps_an_ended_move():
-    """benchmarks/value_lookahead.py's score by hand: a move that ended the episode scores its reward alone, however
+    """benchmarks/studies/value_lookahead.py's score by hand: a move that ended the episode scores its reward alone, however
     large the critic's value of the state it reached."""
-    from benchmarks.value_lookahead import one_move_score
+    from benchmarks.studies.value_lookahead import one_move_score
     reward = torch.tensor([5.0, 1.0, 0.5], dtype=torch.float64)      # success bonus, a gain, a gain
     ended = torch.tensor([True, False, False])
     value = torch.tensor([100.0, 3.0, 4.0], dtype=torch.float64)

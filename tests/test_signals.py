@@ -90,7 +90,7 @@ def test_a_planner_stops_on_a_signal_though_started_with_sigint_ignored(sig, cod
 
 def test_the_calibration_stops_on_sigterm_though_started_with_sigint_ignored(tmp_path):
     out = tmp_path / "cal"
-    proc = start_ignoring_sigint([sys.executable, "-m", "diffdlo.calibrate", "--synthetic", "--moves", "8",
+    proc = start_ignoring_sigint([sys.executable, "-m", "diffdlo.calibration.calibrate", "--synthetic", "--moves", "8",
                                   "--iterations", "100000", "--method", "adam", "--no-progress", "--out", str(out)])
     wait_for(out / ".lock", proc)
     time.sleep(0.5)

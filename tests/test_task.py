@@ -6,7 +6,8 @@ import pytest
 import torch
 
 import diffdlo
-from agents import config, sac
+from agents.common import config
+from agents import sac
 from diffdlo import task
 from diffdlo.envs import BatchedShapeControl, EnvOptions
 

@@ -1,9 +1,9 @@
-"""The fused Triton kernel (backend "triton", diffdlo/triton_kernel.py) against the eager torch reference path.
+"""The fused Triton kernel (backend "triton", diffdlo/backends/triton_kernel.py) against the eager torch reference path.
 
 Marked ``triton`` (kept out of the default run; .ci/run runs them after installing the [gpu] extra):
 ``TRITON_INTERPRET=1 python -m pytest -m triton`` runs the kernels (the move and its adjoint) in Triton's CPU
 interpreter; on a machine with CUDA the same tests run the compiled kernels on the GPU. The interpreter takes ~20-30
-ms per substep, so the params are cut to ~100-substep moves. The gradient problem is benchmarks/triton_gradients.py's,
+ms per substep, so the params are cut to ~100-substep moves. The gradient problem is benchmarks/gradients/triton_gradients.py's,
 which prints the errors the test bounds.
 """
 import dataclasses
@@ -18,8 +18,8 @@ import diffdlo
 from conftest import crumpled
 
 triton = pytest.importorskip("triton")
-from benchmarks import triton_gradients  # noqa: E402
-from diffdlo import triton_kernel  # noqa: E402
+from benchmarks.gradients import triton_gradients  # noqa: E402
+from diffdlo.backends import triton_kernel  # noqa: E402
 
 pytestmark = pytest.mark.triton
 
@@ -226,7 +226,7 @@ def test_every_kernel_compiles_for_a_gpu_without_one():
     """The compiled path, not the interpreter: each kernel variant, float32 and float64, compiled for sm_90 by Triton's
     own ptxas (no GPU needed) at the warps of WARPS, in a fresh process (the interpreter replaces the kernels)."""
     env = {**os.environ, "TRITON_INTERPRET": "0"}
-    out = subprocess.run([sys.executable, "-m", "benchmarks.triton_compile", "--arch", "90"], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "benchmarks.speed.triton_compile", "--arch", "90"], capture_output=True,
                          text=True, env=env, timeout=600, cwd=os.path.dirname(os.path.dirname(__file__)))
     assert out.returncode == 0, out.stderr[-3000:]
     rows = [line.split() for line in out.stdout.splitlines() if line.startswith(("move", "adjoint"))]

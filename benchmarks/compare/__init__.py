@@ -34,12 +34,13 @@ Modules: grid (the YAML, cells, command lines), runner (subprocesses, resume, Ra
 process groups, stopping them), settings (a finished cell's settings against the grid's), records (the committed
 results), stats (intervals, row statistics), summary (the main table, pairing, missing cells and their cost), costs
 (planning against learning), report (the markdown), figures (matplotlib), arguments (options and their checks), cli
-(main). Atomic writes and the lock are diffdlo/files.py's.
+(main). Atomic writes and the lock are diffdlo/utils/files.py's.
 """
 from .cli import main
 from .costs import PAYBACK_SLACK, cost_section, payback, row_cost
 from .figures import make_cost_figures, make_figures
-from .grid import GRID_FILE, NAMED, ROOT, build_cells, cell_dir, command_line, is_done, load_grid, main_rows, method_label
+from .grid import (GRID_FILE, NAMED, ROOT, build_cells, cell_dir, command_line, is_done, load_grid, main_rows,
+                   method_label)
 from .records import RESULTS_FILE, collect, read_records, write_records
 from .report import COLUMNS, harness_command, machine_label, task_groups, write_report
 from .runner import machine_info, run_cell, run_cells

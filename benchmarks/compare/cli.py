@@ -11,7 +11,7 @@ from pathlib import Path
 from . import __doc__ as HARNESS_DOC
 from .arguments import filter_errors, option_errors, parser, select_rows
 from .grid import build_cells, command_line, is_done, load_grid
-from diffdlo.files import OutBusyError, out_lock
+from diffdlo.utils.files import OutBusyError, out_lock
 from .processes import Terminated, signals_stop_compare
 from .records import RESULTS_FILE, collect, read_records, record_changes, record_key
 from .grid import ROOT

@@ -10,7 +10,7 @@ import numpy as np
 
 def acting_sim_evals(runs: list[dict[str, Any]]) -> float:
     """Rope-moves a learner simulates per move it makes: 0 for a policy acting alone, the rollouts' for one acting by
-    policy rollouts through the simulator (agents/rollout.py)."""
+    policy rollouts through the simulator (agents/common/rollout.py)."""
     return float(np.mean([r.get("sim_evals_per_move", 0.0) for r in runs]))
 
 

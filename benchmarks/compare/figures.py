@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from diffdlo.files import replacing
+from diffdlo.utils.files import replacing
 from .costs import acting_sim_evals
 from .grid import main_rows, row_label
 from .summary import heldout_source

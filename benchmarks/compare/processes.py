@@ -9,7 +9,7 @@ import sys
 import threading
 import time
 
-from diffdlo.signals import Terminated, stop_on_signals  # noqa: F401 - Terminated: cli's exit code
+from diffdlo.utils.signals import Terminated, stop_on_signals  # noqa: F401 - Terminated: cli's exit code
 
 # how long a stopped cell's group gets to exit on SIGTERM before SIGKILL: a learner finishes its update (2.4 s for
 # PlaNet's RSSM from pictures) and writes its checkpoint, replay buffer included (0.5 GB of pictures in the grid's
@@ -98,5 +98,5 @@ def allow_children() -> None:
 def signals_stop_compare():
     """While inside: SIGTERM and SIGHUP raise Terminated in the main thread and SIGINT raises KeyboardInterrupt, also
     where the process was started with SIGINT ignored (a shell's background job: ``cmd &``); the previous handlers
-    come back on leaving (diffdlo.signals.stop_on_signals)."""
+    come back on leaving (diffdlo.utils.signals.stop_on_signals)."""
     return stop_on_signals()

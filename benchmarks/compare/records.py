@@ -16,7 +16,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from diffdlo.files import write_text_atomic
+from diffdlo.utils.files import write_text_atomic
 from .grid import ROOT, cell_dir, command_line
 from .settings import argv_changes, comparable_argv
 
@@ -40,7 +40,7 @@ def _curve(d: Path) -> list[list[float]]:
     p = d / "eval.csv"
     if not p.exists():
         return []
-    from agents.logs import read_csv
+    from agents.common.logs import read_csv
 
     rows = [r for r in read_csv(p) if r.get("success_rate") not in (None, "")]
     return [[int(float(r["step"])), round(float(r["success_rate"]), 4),
@@ -59,7 +59,7 @@ def make_record(cell: dict[str, Any], res: dict[str, Any], meta: dict[str, Any])
     rec["machine"] = meta.get("machine")
     rec["learner_device"] = meta.get("learner_device")
     for k in ("env_steps", "wall_s", "sim_evals", "plan_s_per_step", "eval_s_per_episode", "sim_backward",
-              "sim_evals_per_move",           # a learner acting by rollouts (agents/rollout.py)
+              "sim_evals_per_move",           # a learner acting by rollouts (agents/common/rollout.py)
               "teacher_sim_evals"):           # a distilled policy's teacher's rollouts in training (agents/distill.py)
         if res.get(k) is not None:
             rec[k] = res[k]

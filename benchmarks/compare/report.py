@@ -15,7 +15,7 @@ from typing import Any
 
 from .costs import cost_section, row_cost
 from .figures import figure_names, make_cost_figures, make_figures
-from diffdlo.files import write_text_atomic
+from diffdlo.utils.files import write_text_atomic
 from .grid import ROOT, build_cells, cell_dir, main_rows
 from .records import as_results, make_record, record_changes, record_key
 from .settings import changed_cells, describe_changes

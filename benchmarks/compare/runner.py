@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
-from diffdlo.files import write_json_atomic
+from diffdlo.utils.files import write_json_atomic
 from .grid import ROOT, cell_dir, command_line, is_done
 from .processes import allow_children, run_in_own_group, stop_children
 

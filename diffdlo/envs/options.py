@@ -1,6 +1,6 @@
 """The env's options, one frozen dataclass (``EnvOptions``): each field's rule and help beside it, checked when the
 options are built (each error names the bad value and what is allowed) and resolved once (``EnvOptions.resolve``:
-the params and their defaults, the episode length). The learners' ``agents.config.TaskOptions`` maps onto it."""
+the params and their defaults, the episode length). The learners' ``agents.common.config.TaskOptions`` maps onto it."""
 from __future__ import annotations
 
 import dataclasses
@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from .. import task
-from ..checks import check_fields, option
+from ..utils.checks import check_fields, option
 from ..params import CableParams, load_params
 from ..rewards import REWARDS
 from ..shapes import CURVE_MAX_TURN_DEG, random_curve
@@ -77,7 +77,7 @@ class EnvOptions:
         'float32 rope - target per node: the single-input observation), "image" (dict image, target_image: RGB '
         'uint8 (S, S, 3) of the rope and of the target), "image_single" (dict image: rope drawn over the target in '
         'one picture) or "perceived" (dict node_poses, target_poses like "points", but READ from the "image" '
-        "pictures, end markers drawn, by the perception network ``perception``: diffdlo/perception.py; the target "
+        "pictures, end markers drawn, by the perception network ``perception``: diffdlo/perception/network.py; the target "
         "is read once per episode)"))
     action_type: str = option("node", choices=ACTION_TYPES, help=(
         '"node" (eq 2.6, [0, 1]^3: node = round(a0 (N-1)), dx, dy = a 2 s - s with s = params.action_scale) or '
@@ -192,7 +192,7 @@ def env_field(name: str) -> Any:
 
 
 def check_env_fields(opts: Any, skip: Sequence[str] = ()) -> None:
-    """``diffdlo.checks.check_fields`` field by field, a value of the wrong type named in the env's words too: a
+    """``diffdlo.utils.checks.check_fields`` field by field, a value of the wrong type named in the env's words too: a
     field with choices as "unknown <name> <value>: use one of [...]", one with ``says`` as "<name> must be <says>,
     got <value>" (the messages the env has always given)."""
     names = [f.name for f in dataclasses.fields(opts)]

@@ -1,0 +1,267 @@
+"""A PETS-style world model on points: an ensemble of MLPs that predicts what one move does to the rope, and the
+node-categorical CEM of ``planners.cem`` planning through it (the tuned model of agents/planet.py).
+
+Why this model: a move changes the rope locally and almost deterministically, and planning needs it over one or two
+moves (``planners.cem`` solves the task with H = 2 through the true simulator). So each member maps (rope, one-hot
+grasped node, drag) to every node's displacement over the move, in units of the largest drag; the next rope is the
+current one plus that displacement (the change of the rope, not the rope).
+
+Symmetries: the simulator has no walls and the chain is uniform, so a move commutes with translations and rotations
+of the plane, a mirror, and renumbering the nodes from the other end (node k <-> N-1-k). ``frame: grasp`` (default)
+builds the first two in: the rope enters relative to the grasped node, rotated so that the drag points along +x
+(the drag enters as its length), and the predicted displacement is rotated back. ``frame: centroid`` only centres
+the rope (then ``rotate`` augmentation teaches rotations from data). ``augment`` draws one transform per training
+chunk (``rotate``, ``mirror``, ``reverse``) — exact new data, checked against the simulator in tests/test_dynamics.py.
+
+Ensemble: E members, each fit on its own minibatch (a bootstrap in spirit). Planning cost ``propagation``: "members"
+rolls every candidate through every member and averages the E costs (trajectory sampling with one particle per
+member, deterministic, so CEM's elitism holds); "mean" rolls the members' mean prediction (E times cheaper per step
+in memory, the same compute).
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Sequence
+
+import torch
+import torch.nn as nn
+
+from agents.common.envs import EpisodeTracker
+from diffdlo.params import CableParams
+from diffdlo.task import decode_node_action
+from planners.cem import CEM, optimize_together
+from planners.objective import sequence_cost
+
+AUGMENTS = ("rotate", "mirror", "reverse")
+FRAMES = ("grasp", "centroid")
+PROPAGATIONS = ("members", "mean")
+
+
+def check_settings(members: int = 5, hidden: Sequence[int] = (200,), augment: Sequence[str] = (),
+                   frame: str = "grasp", propagation: str = "members") -> None:
+    """The ensemble's settings, checked in one place (the model, its objective and PlaNet's config call it)."""
+    bad = sorted(set(augment) - set(AUGMENTS))
+    if bad:
+        raise ValueError(f"unknown augment {bad}: use some of {list(AUGMENTS)}")
+    if frame not in FRAMES:
+        raise ValueError(f"unknown frame {frame!r}: use one of {list(FRAMES)}")
+    if propagation not in PROPAGATIONS:
+        raise ValueError(f"unknown propagation {propagation!r}: use one of {list(PROPAGATIONS)}")
+    if int(members) < 1 or not hidden or min(hidden) < 1:
+        raise ValueError(f"need members >= 1 and positive hidden sizes, got {members} and {list(hidden)}")
+
+
+class EnsembleDynamics(nn.Module):
+    """E MLPs: next rope (E, B, N, 2) from rope (B, N, 2) or (E, B, N, 2), node (.., B) int64 and drag (.., B, 2)
+    [m]."""
+
+    def __init__(self, p: CableParams, members: int = 5, hidden: Sequence[int] = (200, 200, 200),
+                 augment: Sequence[str] = ("mirror", "reverse"), frame: str = "grasp"):
+        super().__init__()
+        check_settings(members, hidden, augment, frame)
+        self.frame = frame
+        self.p, self.E, self.N = p, int(members), p.n_nodes
+        self.length, self.scale = float(p.length), float(p.action_scale)
+        self.augment = tuple(augment)
+        sizes = [2 * self.N + self.N + (1 if frame == "grasp" else 2), *hidden, 2 * self.N]
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+            bound = 1.0 / math.sqrt(fan_in)                       # nn.Linear's default initialisation, per member
+            self.weights.append(nn.Parameter(torch.empty(self.E, fan_in, fan_out).uniform_(-bound, bound)))
+            self.biases.append(nn.Parameter(torch.empty(self.E, 1, fan_out).uniform_(-bound, bound)))
+
+    # ------------------------------------------------------------------ prediction
+    def forward(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
+        if rope.dim() == 3:                                      # one batch for every member
+            rope, node, drag = (x.unsqueeze(0).expand(self.E, *x.shape) for x in (rope, node, drag))
+        e, b = rope.shape[:2]
+        onehot = torch.nn.functional.one_hot(node, self.N).to(rope.dtype)
+        if self.frame == "grasp":
+            grasped = (rope * onehot[..., None]).sum(-2, keepdim=True)
+            dist = drag.norm(dim=-1, keepdim=True)
+            unit = drag / dist.clamp_min(1e-12)
+            moving = dist > 0                                                   # a zero drag keeps the x axis
+            c = torch.where(moving, unit[..., :1], 1.0)[..., None]               # (E, B, 1, 1)
+            s = torch.where(moving, unit[..., 1:], 0.0)[..., None]
+            rel = rope - grasped
+            local = torch.cat([c * rel[..., :1] + s * rel[..., 1:], c * rel[..., 1:] - s * rel[..., :1]], -1)
+            x = torch.cat([local.reshape(e, b, -1) / self.length, onehot, dist / self.scale], -1)
+        else:
+            centred = rope - rope.mean(-2, keepdim=True)
+            x = torch.cat([centred.reshape(e, b, -1) / self.length, onehot, drag / self.scale], -1)
+        for i, (w, bias) in enumerate(zip(self.weights, self.biases)):
+            x = torch.baddbmm(bias.to(x.dtype), x, w.to(x.dtype))
+            if i < len(self.weights) - 1:
+                x = torch.relu(x)
+        out = x.view(e, b, self.N, 2) * self.scale
+        if self.frame == "grasp":                                               # back to the world frame
+            out = torch.cat([c * out[..., :1] - s * out[..., 1:], s * out[..., :1] + c * out[..., 1:]], -1)
+        return rope + out
+
+    def mean_move(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
+        """The members' mean prediction (B, N, 2): the move of ``propagation: mean``, and of the k-step error."""
+        return self(rope, node, drag).mean(0)
+
+    # ------------------------------------------------------------------ training
+    def loss(self, obs: dict[str, torch.Tensor], actions: torch.Tensor, rewards: torch.Tensor | None = None,
+             mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Open-loop error of each member over chunks: obs["node_poses"] (E B, L+1, N, 2), actions (E B, L, 3)
+        (member e takes rows e B ... (e+1) B - 1), mask (E B, L+1). Member e predicts step l from its own
+        prediction of step l-1 (L = 1: one-step error). Returns loss (mean squared node displacement error, in
+        units of the largest drag) and err_cm (mean node distance)."""
+        rope = obs["node_poses"].float()
+        n, L = actions.shape[:2]
+        if n % self.E:
+            raise ValueError(f"the batch ({n} chunks) must split evenly over the {self.E} members")
+        mask = torch.ones(n, L + 1, device=rope.device) if mask is None else mask.float()
+        node, drag = decode_node_action(actions.float(), self.p)
+        rope, node, drag = self.transform(rope, node, drag)
+        b = n // self.E
+        rope, node, drag, mask = (x.reshape(self.E, b, *x.shape[1:]) for x in (rope, node, drag, mask))
+        pred, sq, dist = rope[:, :, 0], 0.0, 0.0
+        for t in range(L):
+            pred = self(pred, node[:, :, t], drag[:, :, t])
+            err = pred - rope[:, :, t + 1]
+            m = mask[:, :, t + 1]
+            sq = sq + (((err / self.scale) ** 2).sum(-1).mean(-1) * m).sum()
+            dist = dist + (err.norm(dim=-1).mean(-1) * m).detach().sum()
+        count = mask[:, :, 1:].sum().clamp_min(1)
+        return {"loss": sq / count, "err_cm": 100 * dist / count}
+
+    def transform(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor):
+        """One random symmetry per chunk (``augment``), from torch's global generator: rope (B, L+1, N, 2), node
+        (B, L), drag (B, L, 2)."""
+        if not self.training or not self.augment:
+            return rope, node, drag
+        b, dev = rope.shape[0], rope.device
+        if "reverse" in self.augment:
+            flip = torch.rand(b, device=dev) < 0.5
+            rope = torch.where(flip[:, None, None, None], rope.flip(-2), rope)
+            node = torch.where(flip[:, None], self.N - 1 - node, node)
+        m = torch.eye(2, device=dev, dtype=rope.dtype).expand(b, 2, 2)
+        if "rotate" in self.augment:
+            a = 2 * math.pi * torch.rand(b, device=dev, dtype=rope.dtype)
+            c, s = torch.cos(a), torch.sin(a)
+            m = torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
+        if "mirror" in self.augment:
+            sign = torch.where(torch.rand(b, device=dev) < 0.5, -1.0, 1.0).to(rope.dtype)
+            m = m * torch.stack([sign, torch.ones_like(sign)], -1)[:, None, :]      # x -> -x before the rotation
+        rope = torch.einsum("bij,btnj->btni", m, rope)
+        drag = torch.einsum("bij,btj->bti", m, drag)
+        return rope, node, drag
+
+
+# ====================================================================== planning through the model
+class ModelObjective:
+    """cost(actions (R, C, H, 3)) -> (R, C): the planners' cost (``planners.objective.sequence_cost``: shape error
+    after the last move plus ``running_weight`` times the mean intermediate error) of each rope's candidates,
+    rolled out through the model in one batched call per step."""
+
+    def __init__(self, model: EnsembleDynamics, ropes: torch.Tensor, targets: torch.Tensor,
+                 running_weight: float = 0.5, propagation: str = "members"):
+        check_settings(propagation=propagation)
+        self.model, self.ropes, self.targets = model, ropes.float(), targets.float()
+        self.running_weight, self.propagation = float(running_weight), propagation
+        self.calls = 0
+
+    @torch.no_grad()
+    def __call__(self, actions: torch.Tensor) -> torch.Tensor:
+        r, c, h = actions.shape[:3]
+        m = self.model
+        node, drag = decode_node_action(actions.to(self.ropes.device, torch.float32), m.p)
+        node, drag = node.reshape(r * c, h), drag.reshape(r * c, h, 2)
+        pos = self.ropes[:, None].expand(r, c, m.N, 2).reshape(r * c, m.N, 2)
+        target = self.targets[:, None].expand(r, c, m.N, 2).reshape(r * c, m.N, 2)
+        if self.propagation == "members":                        # (E, R C, N, 2): one trajectory per member
+            pos = pos.unsqueeze(0).expand(m.E, *pos.shape)
+            node = node.unsqueeze(0).expand(m.E, *node.shape)
+            drag = drag.unsqueeze(0).expand(m.E, *drag.shape)
+            step = lambda x, t: m(x, node[:, :, t], drag[:, :, t])          # noqa: E731
+        else:
+            step = lambda x, t: m.mean_move(x, node[:, t], drag[:, t])       # noqa: E731
+        states = []
+        for t in range(h):
+            pos = step(pos, t)
+            states.append(pos)
+        self.calls += 1
+        cost = sequence_cost(states, target, self.running_weight)
+        if self.propagation == "members":
+            cost = cost.mean(0)
+        return cost.view(r, c)
+
+
+class ModelPlanner:
+    """The acting policy: every rope's next move by its own warm-started node-categorical CEM (``planners.cem``),
+    all ropes' CEMs in lockstep (one model call per iteration). Reads the rope and the target from the points
+    observation; ``EpisodeTracker`` tells it which ropes are new and which moved."""
+
+    def __init__(self, model: EnsembleDynamics, cfg, core, seed: int):
+        self.model, self.cfg, self.core = model, cfg, core
+        self.b = core.num_envs
+        self.cems = [CEM(3, cfg.horizon, cfg.candidates, cfg.elites, cfg.iterations,
+                         discrete={0: model.N}, generator=torch.Generator().manual_seed(seed + i),
+                         dtype=torch.float32) for i in range(self.b)]
+        self.prev_action = torch.zeros(self.b, 3)
+        self.tracker = EpisodeTracker(core)
+        self.plan_s = 0.0
+        self.planned = 0                                      # rope-moves planned
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"prev_action": self.prev_action.clone(), "last_steps": self.tracker.last_steps.clone(),
+                "cems": [c.state_dict() for c in self.cems], "plan_s": self.plan_s, "planned": self.planned}
+
+    def load_state_dict(self, s: dict[str, Any]) -> None:
+        if len(s["cems"]) != self.b:
+            raise ValueError(f"planner state for {len(s['cems'])} ropes, this planner has {self.b}")
+        self.prev_action, self.tracker.last_steps = s["prev_action"].clone(), s["last_steps"].clone()
+        for c, cs in zip(self.cems, s["cems"]):
+            c.load_state_dict(cs)
+        self.plan_s, self.planned = float(s["plan_s"]), int(s["planned"])
+
+    @torch.no_grad()
+    def __call__(self, obs: dict[str, torch.Tensor], deterministic: bool = True) -> torch.Tensor:
+        t0 = time.perf_counter()
+        new, moved = self.tracker.update()
+        for i in new.nonzero().flatten().tolist():
+            self.cems[i].reset()
+        action = self.prev_action.clone()
+        rows = moved.nonzero().flatten().tolist()
+        if rows:
+            idx = torch.tensor(rows)
+            dev = next(self.model.parameters()).device
+            obj = ModelObjective(self.model, obs["node_poses"][idx].to(dev), obs["target_poses"][idx].to(dev),
+                                 self.cfg.running_weight, self.cfg.propagation)
+            bests = optimize_together([self.cems[i] for i in rows], obj)
+            for i, (best, _) in zip(rows, bests):
+                self.cems[i].shift()
+                action[i] = best[0]
+        if not deterministic and self.cfg.explore_noise > 0:
+            noise = self.cfg.explore_noise * torch.randn(self.b, 3)
+            action = torch.where(moved[:, None], (action + noise).clamp(0.0, 1.0), action)
+        self.prev_action = action
+        self.plan_s += time.perf_counter() - t0
+        self.planned += len(rows)
+        return action.to(obs["node_poses"].device)
+
+
+@torch.no_grad()
+def k_step_errors(model: EnsembleDynamics, start: torch.Tensor, actions: torch.Tensor, true: torch.Tensor,
+                  horizons: Sequence[int], alive: torch.Tensor | None = None) -> dict[str, float]:
+    """Open-loop error of the members' mean from ``start`` (B, N, 2) under node ``actions`` (B, K, 3) against the
+    true ropes (B, K, N, 2): ``pred_err_k`` (mean node distance [m] after k moves) and ``base_err_k`` ("nothing
+    moves": the start rope) for each k in ``horizons``; ropes with ``alive`` False are left out."""
+    node, drag = decode_node_action(actions.float(), model.p)
+    pos, preds = start.float(), []
+    for t in range(actions.shape[1]):
+        pos = model.mean_move(pos, node[:, t], drag[:, t])
+        preds.append(pos)
+    pred = torch.stack(preds, 1)
+    keep = torch.ones(start.shape[0], dtype=torch.bool) if alive is None else alive
+    out = {}
+    for k in horizons:
+        out[f"pred_err_{k}"] = float((pred[:, k - 1] - true[:, k - 1]).norm(dim=-1).mean(-1)[keep].mean())
+        out[f"base_err_{k}"] = float((start - true[:, k - 1]).norm(dim=-1).mean(-1)[keep].mean())
+    out["pred"] = pred
+    return out

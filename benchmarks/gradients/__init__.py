@@ -1,0 +1,1 @@
+"""Gradient benchmarks: APG's gradients, the Triton adjoint."""

@@ -1,0 +1,1 @@
+"""Speed benchmarks: the simulator, the env, the Triton kernels."""

@@ -1,0 +1,1 @@
+"""One-off studies: ablations, calibration, model mismatch, world models, SB3 checks."""

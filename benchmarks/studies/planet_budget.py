@@ -1,0 +1,116 @@
+"""What does PlaNet's planning budget buy? Evaluate a trained PlaNet (ensemble) checkpoint with several CEM budgets.
+
+For each target (default: the run's own; e.g. held-out shapes in planners/targets/) and each (horizon, candidates,
+iterations, propagation) in the grid: the deterministic planner on the run's own evaluation episodes
+(``eval_episodes`` from ``eval_seed``), success at the run's tolerance, mean moves to success, mean final error and
+planning time per env step (all evaluation ropes planned together, as in training).
+
+    python -m benchmarks.studies.planet_budget --run runs/planet_ens_s0 --candidates 300 150 75 --iterations 5 3 \
+        --out runs/planet_budget_s0
+    python -m benchmarks.studies.planet_budget --run runs/planet_ens_s0 --targets planners/targets/arc.npy \
+        planners/targets/s_curve.yaml --out runs/planet_heldout_s0
+
+Budgets not given are the run's own. Writes ``results.json`` under --out (refuses to replace one without
+--overwrite). Elites are 10 % of the candidates.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import itertools
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from agents import planet
+from agents.common import config
+from agents.common.checkpoints import CHECKPOINT, load_checkpoint
+from agents.common.envs import make_env
+from agents.common.evaluation import evaluate
+from diffdlo.shapes import TargetError
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.studies.planet_budget", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--run", required=True, help="a PlaNet run folder holding checkpoint.pt (model: ensemble)")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--targets", nargs="+", default=None,
+                    help="targets to evaluate on (names, families, .npy/.yaml paths; default: the run's target)")
+    ap.add_argument("--horizons", type=int, nargs="+", default=None, help="default: the run's horizon")
+    ap.add_argument("--candidates", type=int, nargs="+", default=None, help="default: the run's candidates")
+    ap.add_argument("--iterations", type=int, nargs="+", default=None, help="default: the run's iterations")
+    ap.add_argument("--propagations", nargs="+", default=None, choices=["members", "mean"],
+                    help="default: the run's propagation")
+    ap.add_argument("--episodes", type=int, default=None, help="evaluation episodes (default: the run's)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing results.json under --out")
+    args = ap.parse_args(argv)
+    for name in ("horizons", "candidates", "iterations"):
+        bad = [v for v in getattr(args, name) or [] if v < 1]
+        if bad:
+            ap.error(f"--{name} must be >= 1, got {bad}")
+    if args.episodes is not None and args.episodes < 1:
+        ap.error(f"--episodes must be >= 1, got {args.episodes}")
+    out = Path(args.out)
+    if (out / "results.json").exists() and not args.overwrite:
+        ap.error(f"{out / 'results.json'} exists: pass --overwrite to replace it")
+    try:
+        ck = load_checkpoint(Path(args.run) / CHECKPOINT)
+    except (FileNotFoundError, ValueError) as exc:
+        ap.error(str(exc))
+    cfg = config.from_flat(planet.PlaNetConfig, ck["config"])
+    if cfg.model != "ensemble":
+        ap.error(f"{args.run} holds a PlaNet with model {cfg.model!r}; this benchmark plans through the ensemble")
+    args.horizons = args.horizons or [cfg.horizon]
+    args.candidates = args.candidates or [cfg.candidates]
+    args.iterations = args.iterations or [cfg.iterations]
+    args.propagations = args.propagations or [cfg.propagation]
+    torch.set_num_threads(args.threads)
+    n = args.episodes or cfg.run.eval_episodes
+    cfg = config.replace(cfg, device="cpu", env_device="cpu")
+    params = cfg.task.cable_params()
+    targets = args.targets or [cfg.task.target]
+    try:
+        envs = {str(t): make_env(dataclasses.replace(cfg.task, target=t), cfg.run, params, min(n, 32))
+                for t in targets}
+    except (ValueError, TargetError) as exc:
+        ap.error(f"bad --targets: {exc}")
+    env = next(iter(envs.values()))
+    model = planet.build_model(cfg, env.reset(seed=0), env.core.action_dim, params)
+    model.load_state_dict(ck["model"])
+    model.eval()
+    rows = []
+    grid = list(itertools.product(targets, args.horizons, args.candidates, args.iterations, args.propagations))
+    for target, h, c, it, prop in tqdm(grid, desc="budgets", file=sys.stderr):
+        env = envs[str(target)]
+        run_cfg = config.replace(cfg, horizon=h, candidates=c, elites=max(1, c // 10), iterations=it,
+                                      propagation=prop)
+        planner = planet.make_planner(model, run_cfg, env.core, cfg.run.eval_seed)
+        t0 = time.perf_counter()
+        r = evaluate(planner, env, n, seed=cfg.run.eval_seed)
+        succ = [e for e in r["episodes"] if e["success"]]
+        rows.append({"target": str(target), "horizon": h, "candidates": c, "iterations": it, "propagation": prop,
+                     "success_rate": r["success_rate"],
+                     "moves_to_success": sum(e["steps"] for e in succ) / len(succ) if succ else None,
+                     "mean_final_error": r["mean_final_error"],
+                     "plan_ms_per_env_step": 1000 * planner.plan_s / max(planner.planned, 1),
+                     "model_evals_per_move": h * c * it * (model.E if prop == "members" else 1),
+                     "wall_s": time.perf_counter() - t0})
+        row = rows[-1]
+        moves = "-" if row["moves_to_success"] is None else f"{row['moves_to_success']:.1f}"
+        print(f"{target}: H={h} candidates={c} iterations={it} {prop}: success {row['success_rate']:.2f}, "
+              f"moves {moves}, "
+              f"final error {100 * row['mean_final_error']:.2f} cm, plan {row['plan_ms_per_env_step']:.0f} ms per "
+              f"env step ({env.num_envs} ropes together)", flush=True)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps({"run": str(args.run), "episodes": n, "eval_seed": cfg.run.eval_seed,
+                                                  "rows": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,12 @@
+"""The renderer inverted: node positions read from the env's pictures (obs "perceived").
+
+network.py holds the network, the reader (``Perception``) and its training; ``python -m diffdlo.perception --out
+DIR`` trains one.
+"""
+from .network import (CHECKPOINT, DEFAULT_VIEW_SIZE, FORMAT, Perception, PerceptionError, PerceptionNet, TrainConfig,
+                      augmented_batch, draw, evaluate, held_out, ink, main, node_error, plot, refine, render_uint8,
+                      sample_shapes, train)
+
+__all__ = ["CHECKPOINT", "DEFAULT_VIEW_SIZE", "FORMAT", "Perception", "PerceptionError", "PerceptionNet",
+           "TrainConfig", "augmented_batch", "draw", "evaluate", "held_out", "ink", "main", "node_error", "plot",
+           "refine", "render_uint8", "sample_shapes", "train"]

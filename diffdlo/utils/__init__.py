@@ -1,0 +1,1 @@
+"""Utilities every command line uses: files (atomic writes, --out guard, lock), signals, checks."""
