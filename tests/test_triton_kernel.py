@@ -205,7 +205,7 @@ def test_bad_inputs_name_the_problem(params):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert "ERR backend 'triton' is unavailable on cpu" in out.stdout and "TRITON_INTERPRET=1" in out.stdout, out
     # without triton importable
-    code = ("import sys\nsys.modules['triton'] = None\nimport diffdlo\nfrom diffdlo import triton_kernel\n"
+    code = ("import sys\nsys.modules['triton'] = None\nimport diffdlo\nfrom diffdlo.backends import triton_kernel\n"
             "assert not triton_kernel.available()\ntry:\n    diffdlo.Simulator(backend='triton')\n"
             "except RuntimeError as e:\n    print('ERR', e)\n"
             "print('AUTO', diffdlo.Simulator().backend, diffdlo.Simulator().engine == 'triton')\n")
