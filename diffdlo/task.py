@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,8 +29,6 @@ from .params import CableParams
 from .rewards import orientation_error, reward as move_reward, shape_error
 from .shapes import CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape
 
-if TYPE_CHECKING:                      # the env's options are built on this module's names: no import at run time
-    from .envs.options import EnvOptions
 
 OBS_TYPES = ("points", "distance", "image", "image_single", "perceived")
 # The observation kinds, named once. POINT_OBS: {node_poses, target_poses}, the rope's and target's node positions
@@ -142,7 +140,7 @@ def greedy_drags(pos: torch.Tensor, target: torch.Tensor, max_disp: float) -> tu
 
 
 # ====================================================================== rewards, success, episode end
-def step_outcome(rules: EnvOptions, prev: torch.Tensor, new: torch.Tensor, target: torch.Tensor,
+def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torch.Tensor,
                  steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Score the moves prev -> new (B, N, 2) towards ``target`` after ``steps`` (B,) moves (this one included), by
     the rules of resolved env options (``EnvOptions.resolve()``, an env's ``options``): reward, success_tol,
