@@ -48,8 +48,11 @@ def check_settings(members: int = 5, hidden: Sequence[int] = (200,), augment: Se
         raise ValueError(f"unknown frame {frame!r}: use one of {list(FRAMES)}")
     if propagation not in PROPAGATIONS:
         raise ValueError(f"unknown propagation {propagation!r}: use one of {list(PROPAGATIONS)}")
-    if int(members) < 1 or not hidden or min(hidden) < 1:
-        raise ValueError(f"need members >= 1 and positive hidden sizes, got {members} and {list(hidden)}")
+    if isinstance(members, bool) or not isinstance(members, int) or members < 1:
+        raise ValueError(f"members must be an integer >= 1, got {members!r}")
+    if (isinstance(hidden, str) or not hidden
+            or not all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in hidden)):
+        raise ValueError(f"need members >= 1 and positive hidden sizes, got {members} and {hidden!r}")
 
 
 class EnsembleDynamics(nn.Module):
