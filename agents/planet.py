@@ -72,6 +72,15 @@ class PlaNetConfig:
     min_std: float = option(0.1, "(0, inf)", help="rssm: the stochastic state's smallest std")
     obs_std: float = option(0.02, "(0, inf)", help="rssm: the std of float observations' likelihood")
     free_nats: float = option(3.0, "[0, inf)", help="rssm: the KL term is constant below this")
+    # the RSSM's diagnosis options (issue 47; agents/models/rssm.py's docstring): the defaults are PlaNet's model
+    rssm_frame: str = option("world", choices=("world", "centroid"),
+                             help='rssm: "world" or "centroid" (rope and target relative to the rope\'s centroid, '
+                                  'carried beside the latent; points only)')
+    rssm_residual: bool = option(False, help="rssm: decode the change of the observation from the previous "
+                                             "observed (filter) or decoded (prior rollout) one; float obs only")
+    kl_balance: str = option("planet", choices=("planet", "dreamerv3"),
+                             help='rssm: "planet" (max(free_nats, KL)) or "dreamerv3" (0.5 dynamics + 0.1 '
+                                  'representation KL, each clamped by free_nats)')
     # learning
     lr: float = option(1e-3, "(0, inf)", help="the model's Adam")
     adam_eps: float = option(1e-4, "(0, inf)", help="the model's Adam eps")
@@ -108,6 +117,11 @@ class PlaNetConfig:
         if self.plan_objective == "shape" and self.task.obs not in COORDINATE_OBS:
             raise ValueError("plan_objective 'shape' needs points or distance observations, or perceived points (it "
                              "decodes node positions)")
+        if self.rssm_frame == "centroid" and self.task.obs not in POINT_OBS:
+            raise ValueError(f"rssm_frame 'centroid' needs obs 'points' or 'perceived', got {self.task.obs!r}")
+        if self.rssm_residual and self.task.obs not in COORDINATE_OBS:
+            raise ValueError(f"rssm_residual needs float observations (points, distance, perceived), got "
+                             f"{self.task.obs!r}")
         if self.elites > self.candidates:
             raise ValueError(f"elites must be at most candidates ({self.candidates}), got {self.elites}")
 
@@ -119,7 +133,8 @@ def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int, p: CableParams) ->
     return RSSM(obs, action_dim, action_type=cfg.task.action, n_nodes=p.n_nodes, scale=1.0 / p.length,
                 deter=cfg.deter, stoch=cfg.stoch, hidden=cfg.hidden, embed=cfg.embed,
                 cnn_channels=cfg.cnn_channels, image_embed=cfg.image_embed, deconv_channels=cfg.deconv_channels,
-                min_std=cfg.min_std, obs_std=cfg.obs_std, free_nats=cfg.free_nats).to(cfg.run.device)
+                min_std=cfg.min_std, obs_std=cfg.obs_std, free_nats=cfg.free_nats, frame=cfg.rssm_frame,
+                residual=cfg.rssm_residual, kl_balance=cfg.kl_balance).to(cfg.run.device)
 
 
 def make_planner(model: RSSM | EnsembleDynamics, cfg: PlaNetConfig, core, seed: int):

@@ -61,21 +61,22 @@ def open_loop_eval(model: RSSM | EnsembleDynamics, cfg, n_episodes: int | None =
         return out
     state = None
     for t in range(context + 1):
-        state, _ = model.obs_step(state, None if t == 0 else acts[t - 1], model.embed(obs_seq[t]), sample=False)
+        state, _ = model.obs_step(state, None if t == 0 else acts[t - 1], model.embed(obs_seq[t]), sample=False,
+                                  obs=obs_seq[t])
     traj = model.imagine(state, torch.stack(acts[context:], 1), sample=False)
     feat = torch.stack([RSSM.feature(s) for s in traj], 1)                            # (n, K, F)
     target = env.core.get_state(generators=False).target.float()
     out: dict[str, Any] = {"n": int(alive.sum()), "context": context}
     a_ = alive.to(true.device)
     if cfg.task.obs in COORDINATE_OBS:
-        pred = decoded_positions(model, feat, cfg.task.obs, target[:, None])
+        pred = decoded_positions(model, feat, cfg.task.obs, target[:, None], model.decode_traj(traj))
         last = pos_seq[context].float()[:, None].expand_as(true)
         for k in horizons:
             out[f"pred_err_{k}"] = float((pred[:, k - 1] - true[:, k - 1]).norm(dim=-1).mean(-1)[a_].mean())
             out[f"base_err_{k}"] = float((last[:, k - 1] - true[:, k - 1]).norm(dim=-1).mean(-1)[a_].mean())
         out["pred"], out["true"] = pred.cpu(), true.cpu()
     else:
-        dec = model.decode(feat)
+        dec = model.decode_traj(traj)
         for k in horizons:
             tgt = model.obs_target(as_dict(obs_seq[context + k]))
             lst = model.obs_target(as_dict(obs_seq[context]))

@@ -26,6 +26,19 @@ for points/distance observations, the shape error of the decoded rope against th
 (``plan_objective: shape``, the planners' cost in planners/objective.py). The prior MEAN is used so that a
 candidate's cost is deterministic, as CEM's elitism assumes. ``LatentPlanner`` filters every rope's belief and plans
 its next move, all ropes' CEMs in lockstep.
+
+Options for the diagnosis of issue 47 (why the RSSM predicts imprecisely; the defaults are PlaNet's model exactly):
+- ``frame: centroid`` (points observations): the encoder sees the rope and the target relative to the rope's
+  centroid, and the decoder predicts them so; the centroid is carried beside the latent state (``state["c"]``) and
+  moved by a small head, c_t = c_{t-1} + dc(h_t, z_t). The latent then never sees where the rope lies: translations
+  of the plane are exact by construction, as in the ensemble's frame (agents/models/ensemble.py).
+- ``residual: True`` (float observations): the decoder predicts the change of the observation, o_t = o_{t-1} +
+  dec(h_t, z_t), on the previous OBSERVED one while filtering (training, the posterior) and on the previous DECODED
+  one in a prior rollout (planning, open loop): ``state["x"]`` carries it (the observation itself in a posterior
+  state). At a sequence start the "previous" observation is the first one (no move: the decoder should say 0).
+- ``kl_balance: dreamerv3``: DreamerV3's KL (Hafner et al. 2023), 0.5 max(free, KL[sg(q) || p]) + 0.1 max(free,
+  KL[q || sg(p)]), each clamped per (sequence, step) by free_nats (DreamerV3's free bits: 1 nat); "planet" is
+  max(free_nats, KL[q || p]) with gradients to both.
 """
 from __future__ import annotations
 
@@ -45,6 +58,10 @@ from diffdlo.task import POINT_OBS, decode_node
 from planners.cem import CEM, optimize_together
 
 State = dict[str, torch.Tensor]   # {"h": (..., D), "z": (..., S), "mean": (..., S), "std": (..., S)}
+#                                   and, with frame "centroid" or residual, "x" (..., O) (+ "c" (..., 2)): the rope
+FRAMES = ("world", "centroid")
+KL_BALANCES = ("planet", "dreamerv3")
+POINT_KEYS = ("node_poses", "target_poses")     # the float keys moved into the centroid frame
 
 
 def gauss_kl(m1: torch.Tensor, s1: torch.Tensor, m2: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
@@ -92,12 +109,21 @@ class RSSM(nn.Module):
                  scale: float = 1.0, deter: int = 200, stoch: int = 30, hidden: int = 200, embed: int = 200,
                  cnn_channels: Sequence[int] = (32, 64, 64), image_embed: int = 1024,
                  deconv_channels: Sequence[int] = (64, 32, 16), min_std: float = 0.1, obs_std: float = 0.02,
-                 free_nats: float = 3.0):
+                 free_nats: float = 3.0, frame: str = "world", residual: bool = False, kl_balance: str = "planet"):
         super().__init__()
         ex = as_dict(obs_example)
         self.float_keys = sorted(k for k, v in ex.items() if v.is_floating_point())
         self.image_keys = sorted(k for k, v in ex.items() if not v.is_floating_point())
         self.shapes = {k: tuple(v.shape[1:]) for k, v in ex.items()}
+        if frame not in FRAMES or kl_balance not in KL_BALANCES:
+            raise ValueError(f"frame must be one of {FRAMES} and kl_balance one of {KL_BALANCES}, got {frame!r}, "
+                             f"{kl_balance!r}")
+        if frame == "centroid" and "node_poses" not in self.float_keys:
+            raise ValueError("frame 'centroid' needs points observations (node_poses)")
+        if (frame == "centroid" or residual) and self.image_keys:
+            raise ValueError("frame 'centroid' and residual need float observations only (points or distance)")
+        self.frame, self.residual, self.kl_balance = frame, bool(residual), kl_balance
+        self.carries = frame == "centroid" or self.residual       # states carry the rope ("x", "c")
         self.scale, self.min_std, self.obs_std, self.free_nats = float(scale), float(min_std), float(obs_std), float(free_nats)
         self.deter, self.stoch = int(deter), int(stoch)
         self.action_type, self.n_nodes, self.action_dim = action_type, int(n_nodes), int(action_dim)
@@ -122,6 +148,8 @@ class RSSM(nn.Module):
             size = self.shapes[self.image_keys[0]][0]
             self.image_dec = ImageDecoder(feat, size, 3 * len(self.image_keys), deconv_channels)
         self.reward_net = mlp(feat, [hidden, hidden], 1, nn.ELU)
+        # built last, so that the default model's parameters (and their initial values) are today's
+        self.centroid_net = mlp(feat, [hidden], 2, nn.ELU) if frame == "centroid" else None
 
     # ------------------------------------------------------------------ pieces
     def model_action(self, a: torch.Tensor) -> torch.Tensor:
@@ -138,11 +166,57 @@ class RSSM(nn.Module):
 
     def initial(self, batch: int, device: Any = "cpu") -> State:
         z = torch.zeros(batch, self.stoch, device=device)
-        return {"h": torch.zeros(batch, self.deter, device=device), "z": z, "mean": z, "std": torch.ones_like(z)}
+        s = {"h": torch.zeros(batch, self.deter, device=device), "z": z, "mean": z, "std": torch.ones_like(z)}
+        if self.carries:
+            s["x"] = torch.zeros(batch, sum(self.float_dims), device=device)
+        if self.frame == "centroid":
+            s["c"] = torch.zeros(batch, 2, device=device)
+        return s
 
     def embed(self, obs: Any) -> torch.Tensor:
         """(B, ...) observations -> (B, E)."""
+        if self.frame == "centroid":
+            return self.embed_net(self.frame_obs(obs)[0])
         return self.embed_net(self.enc(obs))
+
+    # ------------------------------------------------------------------ the centroid frame and the residual decoder
+    def frame_obs(self, obs: Any) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(B, ...) observations -> x (B, O): the float parts in model units, flattened in float_keys order (the
+        encoder's layout), point keys relative to the rope's centroid with frame "centroid"; and that centroid c
+        (B, 2) in model units (None in the world frame)."""
+        o = as_dict(obs)
+        c = o["node_poses"].float().mean(-2) * self.scale if self.frame == "centroid" else None
+        parts = []
+        for k in self.float_keys:
+            v = o[k].float() * self.scale
+            if c is not None and k in POINT_KEYS:
+                v = v - c[:, None]
+            parts.append(v.flatten(1))
+        return torch.cat(parts, -1), c
+
+    def unframe(self, x: torch.Tensor, c: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """frame_obs's inverse: x (..., O) and c (..., 2) -> float observations in model units."""
+        out = {}
+        for k, p in zip(self.float_keys, x.split(self.float_dims, dim=-1)):
+            v = p.reshape(*x.shape[:-1], *self.shapes[k])
+            out[k] = v + c[..., None, :] if c is not None and k in POINT_KEYS else v
+        return out
+
+    def advance(self, prev: State, state: State) -> State:
+        """A prior state carrying the rope decoded from it: x_t = [x_{t-1} +] dec(s_t), c_t = c_{t-1} + dc(s_t)."""
+        feat = self.feature(state)
+        dx = self.float_dec(feat)
+        state["x"] = prev["x"] + dx if self.residual else dx
+        if self.frame == "centroid":
+            state["c"] = prev["c"] + self.centroid_net(feat)
+        return state
+
+    def decode_traj(self, traj: list[State]) -> dict[str, torch.Tensor]:
+        """States of a rollout -> predicted observations (B, H, ...) in model units (as decode)."""
+        if not self.carries:
+            return self.decode(torch.stack([self.feature(s) for s in traj], 1))
+        x = torch.stack([s["x"] for s in traj], 1)
+        return self.unframe(x, torch.stack([s["c"] for s in traj], 1) if self.frame == "centroid" else None)
 
     def step_h(self, state: State, action: torch.Tensor) -> torch.Tensor:
         """h_t from s_{t-1} and the env action a_{t-1}."""
@@ -164,17 +238,25 @@ class RSSM(nn.Module):
         return torch.cat([state["h"], state["z"]], -1)
 
     def obs_step(self, state: State | None, action: torch.Tensor | None, embed: torch.Tensor,
-                 sample: bool = True) -> tuple[State, State]:
+                 sample: bool = True, obs: Any = None) -> tuple[State, State]:
         """One filter step: (posterior, prior) at t given s_{t-1}, a_{t-1} and e(o_t). ``state=None``: episode or
-        chunk start (h_0 = 0, no action)."""
+        chunk start (h_0 = 0, no action). ``obs``: o_t itself, which the posterior carries when ``carries``."""
         h = torch.zeros(embed.shape[0], self.deter, device=embed.device) if state is None else self.step_h(state, action)
-        return self.posterior(h, embed, sample), self.prior(h, sample)
+        post = self.posterior(h, embed, sample)
+        if self.carries:
+            if obs is None:
+                raise ValueError("frame 'centroid' and residual carry the observed rope: pass obs to obs_step")
+            post["x"], c = self.frame_obs(obs)
+            if c is not None:
+                post["c"] = c
+        return post, self.prior(h, sample)
 
     def imagine(self, state: State, actions: torch.Tensor, sample: bool = False) -> list[State]:
         """Open-loop prior rollout from ``state`` (B, ...) under actions (B, H, A): the H next states."""
         out = []
         for t in range(actions.shape[1]):
-            state = self.prior(self.step_h(state, actions[:, t]), sample)
+            nxt = self.prior(self.step_h(state, actions[:, t]), sample)
+            state = self.advance(state, nxt) if self.carries else nxt
             out.append(state)
         return out
 
@@ -212,16 +294,23 @@ class RSSM(nn.Module):
         mask = torch.ones(b, t1, device=actions.device) if mask is None else mask.float()
         flat = {k: v.reshape(b * t1, *v.shape[2:]) for k, v in o.items()}
         emb = self.embed(flat if isinstance(obs, dict) else flat["obs"]).view(b, t1, -1)
+        seq_obs = [{k: v[:, t] for k, v in o.items()} for t in range(t1)] if self.carries else [None] * t1
         posts, priors = [], []
         state = None
         for t in range(t1):
-            post, pri = self.obs_step(state, None if t == 0 else actions[:, t - 1], emb[:, t])
+            post, pri = self.obs_step(state, None if t == 0 else actions[:, t - 1], emb[:, t], obs=seq_obs[t])
             posts.append(post)
             priors.append(pri)
             state = post
         stack = lambda states, key: torch.stack([s[key] for s in states], 1)   # noqa: E731
         feat = torch.cat([stack(posts, "h"), stack(posts, "z")], -1)            # (B, T+1, F)
-        pred = self.decode(feat)
+        if self.carries:     # decoded from the previous OBSERVED rope (the first one at t = 0)
+            x, prev = stack(posts, "x"), lambda v: torch.cat([v[:, :1], v[:, :-1]], 1)   # noqa: E731
+            dx = self.float_dec(feat)
+            c = prev(stack(posts, "c")) + self.centroid_net(feat) if self.frame == "centroid" else None
+            pred = self.unframe(prev(x) + dx if self.residual else dx, c)
+        else:
+            pred = self.decode(feat)
         target = self.obs_target(o)
         recon = 0
         for k in pred:
@@ -230,8 +319,14 @@ class RSSM(nn.Module):
                 err = err / self.obs_std
             recon = recon + 0.5 * err.square().sum(tuple(range(2, err.dim())))
         recon = (recon * mask).sum() / mask.sum().clamp_min(1)
-        kl = gauss_kl(stack(posts, "mean"), stack(posts, "std"), stack(priors, "mean"), stack(priors, "std"))
-        kl_loss = free_nats_kl(kl, self.free_nats, mask)
+        qm, qs, pm, ps = stack(posts, "mean"), stack(posts, "std"), stack(priors, "mean"), stack(priors, "std")
+        kl = gauss_kl(qm, qs, pm, ps)
+        if self.kl_balance == "dreamerv3":    # dynamics loss trains the prior, representation loss the posterior
+            dyn = gauss_kl(qm.detach(), qs.detach(), pm, ps)
+            rep = gauss_kl(qm, qs, pm.detach(), ps.detach())
+            kl_loss = 0.5 * free_nats_kl(dyn, self.free_nats, mask) + 0.1 * free_nats_kl(rep, self.free_nats, mask)
+        else:
+            kl_loss = free_nats_kl(kl, self.free_nats, mask)
         r_pred = self.reward(feat[:, 1:])
         rm = mask[:, 1:]
         err = r_pred - rewards.float()
@@ -242,9 +337,12 @@ class RSSM(nn.Module):
                 "reward_loss": reward_loss, "reward_mae": reward_mae, "last_state": posts[-1]}
 
 
-def decoded_positions(model: RSSM, feat: torch.Tensor, obs_type: str, target: torch.Tensor | None = None):
-    """Rope node positions [m] (..., N, 2) decoded from features, for points (node_poses) or distance (+ target)."""
-    dec = model.decode(feat)
+def decoded_positions(model: RSSM, feat: torch.Tensor, obs_type: str, target: torch.Tensor | None = None,
+                      dec: dict[str, torch.Tensor] | None = None):
+    """Rope node positions [m] (..., N, 2) decoded from features, for points (node_poses) or distance (+ target).
+    ``dec``: the decoded observations when already at hand (``RSSM.decode_traj``; needed when the model carries
+    the rope)."""
+    dec = model.decode(feat) if dec is None else dec
     if obs_type in POINT_OBS:
         return dec["node_poses"] / model.scale
     if obs_type == "distance":
@@ -278,7 +376,8 @@ class LatentObjective:
             cost = -self.model.reward(feat).sum(1)
         else:
             tgt = self.target[:, None].expand(r, c, *self.target.shape[1:]).reshape(r * c, *self.target.shape[1:])
-            pos = decoded_positions(self.model, feat[:, -1], self.obs_type, tgt)
+            dec = {k: v[:, -1] for k, v in self.model.decode_traj(traj[-1:]).items()} if self.model.carries else None
+            pos = decoded_positions(self.model, feat[:, -1], self.obs_type, tgt, dec)
             cost = shape_error(pos, tgt)
         cost = cost.view(r, c)
         return cost[0] if single else cost
@@ -325,9 +424,9 @@ class LatentPlanner:
         emb = m.embed(obs)
         sample = not deterministic      # evaluation filters with the posterior mean
         post, _ = m.obs_step(self.state if self.state is not None else m.initial(self.b, dev), self.prev_action, emb,
-                             sample)
+                             sample, obs=obs)
         if self.state is None or bool(new.any()):
-            fresh, _ = m.obs_step(None, None, emb, sample)
+            fresh, _ = m.obs_step(None, None, emb, sample, obs=obs)
             nd = new.to(dev)
             if self.state is None:
                 post = fresh

@@ -2,13 +2,16 @@
 
 Collect random-move episodes (uniform actions, the same distribution as ``openloop.open_loop_eval``'s
 held-out ropes) into the shared replay buffer, train the RSSM on chunks exactly as ``agents/planet.py`` does, and
-print the open-loop node error after 1, 5 and 10 moves next to the "nothing moves" baseline at a few update counts.
+print the open-loop node error after 1, 2, 5 and 10 moves next to the "nothing moves" baseline at a few update counts.
 
     python benchmarks/studies/planet_model.py --updates 2000            # ~5 min on one CPU core
     python benchmarks/studies/planet_model.py --updates 4000 --set obs_std=0.01
     python benchmarks/studies/planet_model.py --plan-time --envs 16     # seconds per planned move of 16 ropes
     python benchmarks/studies/planet_model.py --preset rssm --set obs=image --update-time --envs 16 --moves 40
                                                                 # seconds per model update (one core)
+    python benchmarks/studies/planet_model.py --envs 64 --moves 160 --preset rssm --updates 4000 \
+        --set rssm_frame=centroid        # or rssm_residual=true, kl_balance=dreamerv3 (+ free_nats=1): the RSSM's
+                                         # diagnosis options (issue 47, docs/WORLD_MODELS.md), one at a time
 
 Used to size ``seed_episodes`` in params/planet.yaml: trained on random moves only, the model beats the baseline
 after ~1000 updates; trained in the loop on 500 random and 9500 planner-chosen moves (the old default), it did not.
