@@ -9,21 +9,13 @@ import torch
 
 from agents import planet
 from agents.common.buffer import ReplayBuffer
-from agents.common.config import load_config
 from agents.common.envs import make_env
 from agents.models import openloop
 from agents.models.rssm import RSSM, free_nats_kl
 
-PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
-SMALL_MODEL = dict(deter=24, stoch=6, hidden=24, embed=24)
+from test_planet import tiny_cfg   # the tiny rope and RSSM of the PlaNet tests
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def tiny_cfg(**kw):
-    base = dict(param_overrides=PO, num_envs=4, max_steps=6, total_steps=64, **SMALL_MODEL)
-    base.update(kw)
-    return load_config(planet.PlaNetConfig, "planet-rssm", base)
 
 
 def setup(rows=12, seed=0, **kw):
