@@ -135,7 +135,7 @@ class EnvOptions:
             v = getattr(self, f.name)
             if isinstance(v, np.generic):
                 object.__setattr__(self, f.name, v.item())
-        check_env_fields(self, skip=("curve_max_turn_deg",))   # resolve checks it in random_curve's own words
+        check_fields(self, skip=("curve_max_turn_deg",))   # resolve checks it in random_curve's own words
         self._check_perception()
 
     def _check_perception(self) -> None:
@@ -189,25 +189,6 @@ def env_field(name: str) -> Any:
     and ``env_name`` to map it back."""
     f = EnvOptions.__dataclass_fields__[name]
     return dataclasses.field(default=f.default, metadata={**f.metadata, "says": None, "env_name": name})
-
-
-def check_env_fields(opts: Any, skip: Sequence[str] = ()) -> None:
-    """``diffdlo.utils.checks.check_fields`` field by field, a value of the wrong type named in the env's words too: a
-    field with choices as "unknown <name> <value>: use one of [...]", one with ``says`` as "<name> must be <says>,
-    got <value>" (the messages the env has always given)."""
-    names = [f.name for f in dataclasses.fields(opts)]
-    for f in dataclasses.fields(opts):
-        if f.name in skip:
-            continue
-        try:
-            check_fields(opts, skip=[n for n in names if n != f.name])
-        except ValueError:
-            v = getattr(opts, f.name)
-            if f.metadata.get("choices") is not None:
-                raise _choice_error(f.name, v, f.metadata["choices"]) from None
-            if f.metadata.get("says"):
-                raise ValueError(f"{f.name} must be {f.metadata['says']}, got {v!r}") from None
-            raise
 
 
 def env_options(options: EnvOptions | None, keywords: dict[str, Any]) -> EnvOptions:

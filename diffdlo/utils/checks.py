@@ -101,11 +101,15 @@ def check_fields(obj: Any, skip: Sequence[str] = ()) -> None:
             continue
         v = getattr(obj, f.name)
         k = kinds[f.name]
+        meta = f.metadata
         if k is not None and not any(_is(t, v) for t in k):
+            if meta.get("choices") is not None:
+                check_choice(f.name, v, meta["choices"])      # a value of the wrong type is not one of the choices
+            if meta.get("says"):
+                raise ValueError(f"{f.name} must be {meta['says']}, got {v!r}")
             raise ValueError(f"{f.name} must be {_wanted(k)}, got {v!r} ({type(v).__name__})")
         if v is None:
             continue
-        meta = f.metadata
         try:
             if meta.get("interval"):
                 check_interval(f.name, v, meta["interval"])
