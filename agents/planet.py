@@ -2,12 +2,16 @@
 through it. CleanRL-style: config -> the chosen world model and its planner -> loop.
 
     python -m agents.planet --out runs/planet                     # tuned: the ensemble on points, 10k env steps
+    python -m agents.planet --preset latent --out runs/planet-latent   # the latent world model on points
     python -m agents.planet --preset rssm --obs image --action pixel --out runs/planet-rssm-image
 
-Two world models (``model``):
+Three world models (``model``):
 - "ensemble" (default, params/planet.yaml; agents/models/ensemble.py): PETS-style MLPs predicting one move's change of the
   rope from the rope, the grasped node and the drag; planned through by ``agents.models.ensemble.ModelPlanner`` with the
   planners' cost (shape error of the predicted rope against the observed target). Points and node actions only.
+- "latent" (params/planet-latent.yaml; agents/models/latent.py): an encoder, deterministic latent dynamics and a
+  decoder of the rope's change, in the frame of the first planned move (TD-MPC-style latent, PlaNet's decoder);
+  planned in latent space by the same ``ModelPlanner`` on the decoded rope's shape error. Points and node actions.
 - "rssm" (params/planet-rssm.yaml; agents/models/rssm.py): PlaNet's recurrent state-space model, any observation, planned
   in latent space by ``agents.models.rssm.LatentPlanner`` (``LatentObjective``: minus the predicted rewards, or the decoded
   rope's shape error).
@@ -38,10 +42,15 @@ from agents.common.logs import fmt_postfix
 from agents.common.run import Run, learner
 from agents.models.ensemble import EnsembleDynamics, ModelPlanner, check_settings
 from agents.models.openloop import open_loop_eval, openloop_row, plot_open_loop
+from agents.models.latent import LatentWorldModel, check_latent_settings
 from agents.models.rssm import RSSM, LatentPlanner
 from diffdlo.utils.checks import check_fields, option
 from diffdlo.params import CableParams
 from diffdlo.task import COORDINATE_OBS, POINT_OBS
+
+
+MODELS = ("ensemble", "latent", "rssm")
+WorldModel = EnsembleDynamics | LatentWorldModel | RSSM
 
 
 # ====================================================================== config (defaults: params/planet.yaml)
@@ -50,16 +59,28 @@ class PlaNetConfig:
     task: TaskOptions = part(TaskOptions)
     run: RunOptions = part(RunOptions, total_steps=100_000, eval_every=10_000, checkpoint_every=10_000,
                            log_every=25)          # log_every: model updates
-    # model: "ensemble" (agents/models/ensemble.py, points only) or "rssm" (agents/models/rssm.py, PlaNet's)
-    model: str = option("ensemble", choices=("ensemble", "rssm"), help='"ensemble" (points only) or "rssm"')
-    # the ensemble (agents/models/ensemble.py); augment, frame and propagation are checked by dynamics.check_settings
+    # model: "ensemble" (agents/models/ensemble.py, PETS-style), "latent" (agents/models/latent.py), both on points;
+    # or "rssm" (agents/models/rssm.py, PlaNet's)
+    model: str = option("ensemble", choices=MODELS,
+                        help='"ensemble" (points only), "latent" (points only) or "rssm"')
+    # the ensemble (agents/models/ensemble.py); augment, frame and propagation are checked by check_settings (and
+    # augment and frame, which the latent model shares, by check_latent_settings)
     members: int = option(5, "[1, inf)", help="ensemble: its MLPs")
     model_hidden: list = option(factory=lambda: [200, 200, 200], layers=True, help="ensemble: each MLP's hidden layers")
-    augment: list = option(factory=lambda: ["mirror", "reverse"], help="ensemble: the symmetries trained on")
-    frame: str = option("grasp", help='ensemble: "grasp" or "centroid", the frame each move is predicted in')
+    augment: list = option(factory=lambda: ["mirror", "reverse"],
+                           help="ensemble and latent: the symmetries trained on")
+    frame: str = option("grasp", help='ensemble and latent: "grasp" or "centroid", the frame each move (the latent '
+                                      'model: each rollout) is predicted in')
     propagation: str = option("members", help='ensemble: "members" or "mean", how the planning cost uses it')
     running_weight: float = option(0.5, "[0, inf)",
                                    help="ensemble's planning cost: weight of the mean intermediate shape error")
+    # the latent world model (agents/models/latent.py)
+    latent_dim: int = option(128, "[1, inf)", help="latent: the latent state's size")
+    latent_hidden: list = option(factory=lambda: [256, 256], layers=True,
+                                 help="latent: hidden layers of its encoder, dynamics and decoder")
+    residual_decoder: bool = option(True, help="latent: decode the change of the rope (x_0 + D(z_t) - D(z_0))")
+    consistency: float = option(1.0, "[0, inf)", help="latent: weight of the latent consistency loss (TD-MPC2)")
+    rho: float = option(0.5, "(0, 1]", help="latent: weight of move t of a chunk's loss is rho^t (TD-MPC2)")
     # the RSSM (agents/models/rssm.py)
     deter: int = option(200, "[1, inf)", help="rssm: deterministic state size")
     stoch: int = option(30, "[1, inf)", help="rssm: stochastic state size")
@@ -107,12 +128,18 @@ class PlaNetConfig:
     def check(self) -> None:
         self.task.check()
         self.run.check()
-        if self.model == "ensemble":
+        if self.model in ("ensemble", "latent"):
             if self.task.obs not in POINT_OBS or self.task.action != "node":
-                raise ValueError(f"model 'ensemble' predicts node positions from node actions: it needs obs "
+                raise ValueError(f"model {self.model!r} predicts node positions from node actions: it needs obs "
                                  f"'points' or 'perceived' and action 'node', got obs {self.task.obs!r} and action "
                                  f"{self.task.action!r} (use --preset rssm)")
+        if self.model == "ensemble":
             check_settings(self.members, self.model_hidden, self.augment, self.frame, self.propagation)
+        if self.model == "latent":
+            check_latent_settings(self.latent_dim, self.latent_hidden, self.augment, self.frame)
+            if self.plan_objective != "shape":
+                raise ValueError(f"model 'latent' plans on the decoded rope's shape error: plan_objective must be "
+                                 f"'shape', got {self.plan_objective!r}")
         check_fields(self, skip=SECTIONS)   # after check_settings, whose message names the ensemble's layer sizes
         if self.plan_objective == "shape" and self.task.obs not in COORDINATE_OBS:
             raise ValueError("plan_objective 'shape' needs points or distance observations, or perceived points (it "
@@ -127,9 +154,12 @@ class PlaNetConfig:
 
 
 # ====================================================================== the world model and its planner
-def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int, p: CableParams) -> RSSM | EnsembleDynamics:
+def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int, p: CableParams) -> WorldModel:
     if cfg.model == "ensemble":
         return EnsembleDynamics(p, cfg.members, cfg.model_hidden, cfg.augment, cfg.frame).to(cfg.run.device)
+    if cfg.model == "latent":
+        return LatentWorldModel(p, cfg.latent_dim, cfg.latent_hidden, cfg.augment, cfg.frame, cfg.residual_decoder,
+                                cfg.consistency, cfg.rho).to(cfg.run.device)
     return RSSM(obs, action_dim, action_type=cfg.task.action, n_nodes=p.n_nodes, scale=1.0 / p.length,
                 deter=cfg.deter, stoch=cfg.stoch, hidden=cfg.hidden, embed=cfg.embed,
                 cnn_channels=cfg.cnn_channels, image_embed=cfg.image_embed, deconv_channels=cfg.deconv_channels,
@@ -137,8 +167,8 @@ def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int, p: CableParams) ->
                 residual=cfg.rssm_residual, kl_balance=cfg.kl_balance).to(cfg.run.device)
 
 
-def make_planner(model: RSSM | EnsembleDynamics, cfg: PlaNetConfig, core, seed: int):
-    return ModelPlanner(model, cfg, core, seed) if cfg.model == "ensemble" else LatentPlanner(model, cfg, core, seed)
+def make_planner(model: WorldModel, cfg: PlaNetConfig, core, seed: int):
+    return LatentPlanner(model, cfg, core, seed) if cfg.model == "rssm" else ModelPlanner(model, cfg, core, seed)
 
 
 # ====================================================================== training loop
@@ -196,7 +226,7 @@ def train(cfg: PlaNetConfig, out: Path | str, resume: bool = False, progress: bo
                 scalars = {k: v.item() for k, v in L.items() if torch.is_tensor(v) and v.numel() == 1}
                 logger.log("train", run.step, {**scalars, "grad_norm": float(gnorm), "n_updates": n_updates})
                 run.log_rollout()
-                shown = ("err_cm",) if cfg.model == "ensemble" else ("recon", "kl")
+                shown = ("recon", "kl") if cfg.model == "rssm" else ("err_cm",)
                 bar.set_postfix(fmt_postfix(run.last_success, **{k: L[k].item() for k in shown}))
 
         # ---- evaluate (it plans every move of every episode: checkpointed first, so that a stop loses none of the

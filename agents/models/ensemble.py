@@ -134,35 +134,65 @@ class EnsembleDynamics(nn.Module):
         return {"loss": sq / count, "err_cm": 100 * dist / count}
 
     def transform(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor):
-        """One random symmetry per chunk (``augment``), from torch's global generator: rope (B, L+1, N, 2), node
-        (B, L), drag (B, L, 2)."""
-        if not self.training or not self.augment:
+        """One random symmetry per chunk (``augment``; ``symmetry_transform``), in training only."""
+        if not self.training:
             return rope, node, drag
-        b, dev = rope.shape[0], rope.device
-        if "reverse" in self.augment:
-            flip = torch.rand(b, device=dev) < 0.5
-            rope = torch.where(flip[:, None, None, None], rope.flip(-2), rope)
-            node = torch.where(flip[:, None], self.N - 1 - node, node)
-        m = torch.eye(2, device=dev, dtype=rope.dtype).expand(b, 2, 2)
-        if "rotate" in self.augment:
-            a = 2 * math.pi * torch.rand(b, device=dev, dtype=rope.dtype)
-            c, s = torch.cos(a), torch.sin(a)
-            m = torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
-        if "mirror" in self.augment:
-            sign = torch.where(torch.rand(b, device=dev) < 0.5, -1.0, 1.0).to(rope.dtype)
-            m = m * torch.stack([sign, torch.ones_like(sign)], -1)[:, None, :]      # x -> -x before the rotation
-        rope = torch.einsum("bij,btnj->btni", m, rope)
-        drag = torch.einsum("bij,btj->bti", m, drag)
+        return symmetry_transform(rope, node, drag, self.augment)
+
+    def rollout(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor,
+                propagation: str = "members") -> list[torch.Tensor]:
+        """The ropes after each of H moves from ``rope`` (B, N, 2) under node (B, H) and drag (B, H, 2): H tensors
+        (E, B, N, 2), one trajectory per member (``propagation: members``), or (B, N, 2) rolling the members' mean."""
+        if propagation == "members":
+            node, drag = (x.unsqueeze(0).expand(self.E, *x.shape) for x in (node, drag))
+            pos = rope.unsqueeze(0).expand(self.E, *rope.shape)
+            step = lambda x, t: self(x, node[:, :, t], drag[:, :, t])          # noqa: E731
+        else:
+            pos = rope
+            step = lambda x, t: self.mean_move(x, node[:, t], drag[:, t])       # noqa: E731
+        states = []
+        for t in range(node.shape[-1]):
+            pos = step(pos, t)
+            states.append(pos)
+        return states
+
+    def predict(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
+        """The model's point prediction (B, H, N, 2) of the ropes after each move (the members' mean, rolled)."""
+        return torch.stack(self.rollout(rope, node, drag, "mean"), 1)
+
+
+def symmetry_transform(rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor, augment: Sequence[str]):
+    """One random symmetry of the simulator per chunk, from torch's global generator: rope (B, L+1, N, 2), node
+    (B, L), drag (B, L, 2). ``augment``: some of "reverse" (nodes numbered from the other end), "rotate" (a uniform
+    rotation of the plane), "mirror" (x -> -x); exact new data (tests/test_dynamics.py)."""
+    if not augment:
         return rope, node, drag
+    b, dev, n = rope.shape[0], rope.device, rope.shape[-2]
+    if "reverse" in augment:
+        flip = torch.rand(b, device=dev) < 0.5
+        rope = torch.where(flip[:, None, None, None], rope.flip(-2), rope)
+        node = torch.where(flip[:, None], n - 1 - node, node)
+    m = torch.eye(2, device=dev, dtype=rope.dtype).expand(b, 2, 2)
+    if "rotate" in augment:
+        a = 2 * math.pi * torch.rand(b, device=dev, dtype=rope.dtype)
+        c, s = torch.cos(a), torch.sin(a)
+        m = torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
+    if "mirror" in augment:
+        sign = torch.where(torch.rand(b, device=dev) < 0.5, -1.0, 1.0).to(rope.dtype)
+        m = m * torch.stack([sign, torch.ones_like(sign)], -1)[:, None, :]      # x -> -x before the rotation
+    rope = torch.einsum("bij,btnj->btni", m, rope)
+    drag = torch.einsum("bij,btj->bti", m, drag)
+    return rope, node, drag
 
 
 # ====================================================================== planning through the model
 class ModelObjective:
     """cost(actions (R, C, H, 3)) -> (R, C): the planners' cost (``planners.objective.sequence_cost``: shape error
     after the last move plus ``running_weight`` times the mean intermediate error) of each rope's candidates,
-    rolled out through the model in one batched call per step."""
+    rolled out through the model (its ``rollout``: this ensemble, or ``agents.models.latent.LatentWorldModel``,
+    which plans in latent space) in one batched call per step."""
 
-    def __init__(self, model: EnsembleDynamics, ropes: torch.Tensor, targets: torch.Tensor,
+    def __init__(self, model: nn.Module, ropes: torch.Tensor, targets: torch.Tensor,
                  running_weight: float = 0.5, propagation: str = "members"):
         check_settings(propagation=propagation)
         self.model, self.ropes, self.targets = model, ropes.float(), targets.float()
@@ -177,30 +207,21 @@ class ModelObjective:
         node, drag = node.reshape(r * c, h), drag.reshape(r * c, h, 2)
         pos = self.ropes[:, None].expand(r, c, m.N, 2).reshape(r * c, m.N, 2)
         target = self.targets[:, None].expand(r, c, m.N, 2).reshape(r * c, m.N, 2)
-        if self.propagation == "members":                        # (E, R C, N, 2): one trajectory per member
-            pos = pos.unsqueeze(0).expand(m.E, *pos.shape)
-            node = node.unsqueeze(0).expand(m.E, *node.shape)
-            drag = drag.unsqueeze(0).expand(m.E, *drag.shape)
-            step = lambda x, t: m(x, node[:, :, t], drag[:, :, t])          # noqa: E731
-        else:
-            step = lambda x, t: m.mean_move(x, node[:, t], drag[:, t])       # noqa: E731
-        states = []
-        for t in range(h):
-            pos = step(pos, t)
-            states.append(pos)
+        states = m.rollout(pos, node, drag, self.propagation)      # H tensors ([E,] R C, N, 2)
         self.calls += 1
         cost = sequence_cost(states, target, self.running_weight)
-        if self.propagation == "members":
+        if cost.dim() == 2:                                      # one trajectory per member: their mean cost
             cost = cost.mean(0)
         return cost.view(r, c)
 
 
 class ModelPlanner:
-    """The acting policy: every rope's next move by its own warm-started node-categorical CEM (``planners.cem``),
-    all ropes' CEMs in lockstep (one model call per iteration). Reads the rope and the target from the points
-    observation; ``EpisodeTracker`` tells it which ropes are new and which moved."""
+    """The acting policy of a model of node positions (the ensemble, the latent model): every rope's next move by its
+    own warm-started node-categorical CEM (``planners.cem``), all ropes' CEMs in lockstep (one model call per
+    iteration). Reads the rope and the target from the points observation; ``EpisodeTracker`` tells it which ropes
+    are new and which moved."""
 
-    def __init__(self, model: EnsembleDynamics, cfg, core, seed: int):
+    def __init__(self, model: nn.Module, cfg, core, seed: int):
         self.model, self.cfg, self.core = model, cfg, core
         self.b = core.num_envs
         self.cems = [CEM(3, cfg.horizon, cfg.candidates, cfg.elites, cfg.iterations,
@@ -256,11 +277,7 @@ def k_step_errors(model: EnsembleDynamics, start: torch.Tensor, actions: torch.T
     true ropes (B, K, N, 2): ``pred_err_k`` (mean node distance [m] after k moves) and ``base_err_k`` ("nothing
     moves": the start rope) for each k in ``horizons``; ropes with ``alive`` False are left out."""
     node, drag = decode_node_action(actions.float(), model.p)
-    pos, preds = start.float(), []
-    for t in range(actions.shape[1]):
-        pos = model.mean_move(pos, node[:, t], drag[:, t])
-        preds.append(pos)
-    pred = torch.stack(preds, 1)
+    pred = model.predict(start.float(), node, drag)
     keep = torch.ones(start.shape[0], dtype=torch.bool) if alive is None else alive
     out = {}
     for k in horizons:

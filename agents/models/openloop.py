@@ -12,6 +12,7 @@ import torch
 
 from agents.common.buffer import as_dict
 from agents.models.ensemble import EnsembleDynamics, k_step_errors
+from agents.models.latent import LatentWorldModel
 from agents.common.envs import make_env
 from agents.models.rssm import RSSM, decoded_positions
 from diffdlo.params import CableParams
@@ -19,7 +20,7 @@ from diffdlo.task import COORDINATE_OBS
 
 
 @torch.no_grad()
-def open_loop_eval(model: RSSM | EnsembleDynamics, cfg, n_episodes: int | None = None,
+def open_loop_eval(model: RSSM | EnsembleDynamics | LatentWorldModel, cfg, n_episodes: int | None = None,
                    context: int | None = None, horizons: tuple[int, ...] = (1, 2, 5, 10),
                    seed: int | None = None, params: CableParams | None = None) -> dict[str, Any]:
     """Open-loop prediction error on held-out episodes (fresh ropes, uniform random moves, never in the buffer).
@@ -30,7 +31,7 @@ def open_loop_eval(model: RSSM | EnsembleDynamics, cfg, n_episodes: int | None =
     moves" baseline: the last observed rope), for points and distance observations; for images the same keys hold
     the mean squared pixel error (model units, [-0.5, 0.5]) of the decoded image vs the last observed image.
     Ropes whose episode ends before the last move are left out. Also returns the trajectories for pictures.
-    The ensemble needs no filter: it predicts from the rope observed after ``context`` moves. ``params``: the run's
+    The ensemble and the latent model need no filter: they predict from the rope observed after ``context`` moves. ``params``: the run's
     cable params (default: resolved from cfg.task).
     """
     n = n_episodes or cfg.openloop_episodes
@@ -52,7 +53,7 @@ def open_loop_eval(model: RSSM | EnsembleDynamics, cfg, n_episodes: int | None =
         pos_seq.append(env.core.get_state(generators=False).pos)
         acts.append(a)
     true = torch.stack(pos_seq[context + 1:], 1).float()                              # (n, K, N, 2)
-    if isinstance(model, EnsembleDynamics):
+    if not isinstance(model, RSSM):            # a model of node positions that predicts from the observed rope
         out = k_step_errors(model, pos_seq[context].float(), torch.stack(acts[context:], 1), true, horizons,
                             alive.to(true.device))
         out.update({"n": int(alive.sum()), "context": context, "true": true.cpu(), "alive": alive,

@@ -1,0 +1,209 @@
+"""A latent world model that plans (issue 47): encoder -> deterministic latent dynamics -> decoder of the rope,
+planned through by CEM in latent space. ``model: latent`` of agents/planet.py (params/planet-latent.yaml).
+
+Why not PlaNet's RSSM as it is: it predicts one move at 1.24 cm where "nothing moves" is 1.46 cm
+(docs/WORLD_MODELS.md). What the accurate models of this task have, and this one takes over:
+
+- **A canonical frame** (equivariance by canonicalisation, as Kaba et al. 2023 "Equivariance with learned
+  canonicalization functions", here a fixed one): a rollout is expressed in the frame of its FIRST move,
+  ``frame: grasp`` — origin at the grasped node, x along the drag (the ensemble's frame, agents/models/ensemble.py) —
+  or ``frame: centroid`` (origin at the rope's centroid, world axes). The encoder sees the rope in that frame, every
+  drag of the sequence is rotated into it, and the decoded ropes are rotated back: translations (and, in the grasp
+  frame, rotations) of the plane are exact by construction. The frame is a function of the observed rope and the
+  first action, so each planned candidate is encoded in its own frame (one small MLP call per candidate).
+- **Deterministic residual latent dynamics** z' = z + f(z, one-hot node, drag) (TD-MPC / TD-MPC2, Hansen et al.
+  2022, 2024: a move changes the rope almost deterministically; a stochastic latent bought nothing, step 1 of the
+  issue), trained through ``chunk_length`` moves open loop.
+- **A decoder of the change** (``residual_decoder``): the rope after t latent steps is x_0 + D(z_t) - D(z_0), the
+  observed rope plus the decoded change, so the autoencoder's own error cancels (the RSSM's change-of-the-rope
+  decoder was its one option that helped, 1.24 -> 0.86 cm).
+- **The simulator's symmetries** as data (``augment``: mirror, reverse; ``ensemble.symmetry_transform``).
+
+Loss per chunk of L moves (all in the frame of the chunk's first move, in units of the largest drag), each step's
+term weighted rho^t (TD-MPC2's horizon discount, 0.5):
+  prediction  || decoded rope after t+1 latent steps - observed rope t+1 ||^2       (open loop from z_0 = E(x_0))
+  consistency || z_{t+1} - sg(E(x_{t+1})) ||^2 x ``consistency``                     (TD-MPC2's latent consistency)
+  reconstruction || D(E(x_t)) - x_t ||^2 for every observed rope                      (keeps E and D an autoencoder)
+
+Planning: ``agents.models.ensemble.ModelPlanner`` / ``ModelObjective`` call ``rollout`` — encode each candidate's
+start once, step the latent H times, decode each step — and score the decoded ropes with the planners' cost
+(``planners.objective.sequence_cost``: shape error against the observed target). The acting model sees only the
+observation (points): the rope and the target.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from agents.models.ensemble import symmetry_transform
+from agents.models.networks import mlp
+from diffdlo.params import CableParams
+from diffdlo.task import decode_node_action
+
+FRAMES = ("grasp", "centroid")
+AUGMENTS = ("mirror", "reverse")       # rotations are exact by construction in the grasp frame
+
+
+def check_latent_settings(latent: int, hidden: Sequence[int], augment: Sequence[str], frame: str) -> None:
+    """The latent model's settings, named when wrong (the model and PlaNet's config call it)."""
+    if frame not in FRAMES:
+        raise ValueError(f"unknown frame {frame!r} for the latent model: use one of {list(FRAMES)}")
+    bad = sorted(set(augment) - set(AUGMENTS) - ({"rotate"} if frame == "centroid" else set()))
+    if bad:
+        raise ValueError(f"unknown augment {bad} for the latent model: use some of {list(AUGMENTS)}"
+                         + (" (or rotate, with frame centroid)" if frame == "grasp" else ""))
+    if isinstance(latent, bool) or not isinstance(latent, int) or latent < 1:
+        raise ValueError(f"latent_dim must be an integer >= 1, got {latent!r}")
+    if (isinstance(hidden, str) or not hidden
+            or not all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in hidden)):
+        raise ValueError(f"latent_hidden must be a list of positive layer sizes, got {hidden!r}")
+
+
+class Frame:
+    """A rigid frame of the plane per rope: origin (B, 1, 2) and the rotation (c, s) (B, 1, 1) of its x axis."""
+
+    def __init__(self, origin: torch.Tensor, c: torch.Tensor, s: torch.Tensor):
+        self.origin, self.c, self.s = origin, c, s
+
+    @staticmethod
+    def of(rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor, kind: str) -> "Frame":
+        """The frame of a move: ``grasp`` (origin at rope[node], x along the drag; a zero drag keeps the world x
+        axis) or ``centroid`` (the rope's centroid, world axes). rope (B, N, 2), node (B,), drag (B, 2)."""
+        if kind == "centroid":
+            origin = rope.mean(-2, keepdim=True)
+            one = torch.ones_like(origin[..., :1])
+            return Frame(origin, one, torch.zeros_like(one))
+        origin = rope.gather(-2, node.long()[:, None, None].expand(-1, 1, 2))
+        dist = drag.norm(dim=-1, keepdim=True)
+        moving = dist > 0
+        unit = drag / dist.clamp_min(1e-12)
+        c = torch.where(moving, unit[..., :1], 1.0)[:, None]
+        s = torch.where(moving, unit[..., 1:], 0.0)[:, None]
+        return Frame(origin, c, s)
+
+    def _expand(self, x: torch.Tensor):
+        extra = x.dim() - 3                                  # points (B, [T,] N, 2): broadcast over T
+        shape = (x.shape[0],) + (1,) * extra + (1, -1)
+        return (self.origin.reshape(*shape[:-1], 2), self.c.reshape(*shape[:-1], 1), self.s.reshape(*shape[:-1], 1))
+
+    def points_in(self, x: torch.Tensor) -> torch.Tensor:
+        o, c, s = self._expand(x)
+        return self.rotate_in(x - o, c, s)
+
+    def points_out(self, x: torch.Tensor) -> torch.Tensor:
+        o, c, s = self._expand(x)
+        return self.rotate_out(x, c, s) + o
+
+    def vectors_in(self, v: torch.Tensor) -> torch.Tensor:
+        """Vectors (B, [T,] 2) into the frame (drags)."""
+        shape = (v.shape[0],) + (1,) * (v.dim() - 1)
+        return self.rotate_in(v, self.c.reshape(shape), self.s.reshape(shape))
+
+    @staticmethod
+    def rotate_in(v, c, s):
+        return torch.cat([c * v[..., :1] + s * v[..., 1:], c * v[..., 1:] - s * v[..., :1]], -1)
+
+    @staticmethod
+    def rotate_out(v, c, s):
+        return torch.cat([c * v[..., :1] - s * v[..., 1:], s * v[..., :1] + c * v[..., 1:]], -1)
+
+
+class LatentWorldModel(nn.Module):
+    """Encoder E: rope in the frame (N x 2, in rope lengths) -> z; dynamics z' = z + f(z, one-hot node, drag in the
+    frame / largest drag); decoder D: z -> rope in the frame. ``rollout`` and ``predict`` take world-frame ropes and
+    node actions, as ``EnsembleDynamics``'s, so the same planner plans through either."""
+
+    def __init__(self, p: CableParams, latent: int = 128, hidden: Sequence[int] = (256, 256),
+                 augment: Sequence[str] = ("mirror", "reverse"), frame: str = "grasp", residual_decoder: bool = True,
+                 consistency: float = 1.0, rho: float = 0.5):
+        super().__init__()
+        check_latent_settings(latent, hidden, augment, frame)
+        self.p, self.N, self.E = p, p.n_nodes, 1
+        self.length, self.scale = float(p.length), float(p.action_scale)
+        self.frame, self.augment = frame, tuple(augment)
+        self.residual_decoder, self.consistency, self.rho = bool(residual_decoder), float(consistency), float(rho)
+        self.latent = int(latent)
+        self.encoder = mlp(2 * self.N, list(hidden), self.latent, nn.ELU)
+        self.dynamics = mlp(self.latent + self.N + 2, list(hidden), self.latent, nn.ELU)
+        self.decoder = mlp(self.latent, list(hidden), 2 * self.N, nn.ELU)
+
+    # ------------------------------------------------------------------ pieces
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """Ropes in the frame [m] (..., N, 2) -> latents (..., latent)."""
+        return self.encoder(x.flatten(-2) / self.length)
+
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        """Latents (..., latent) -> ropes in the frame [m] (..., N, 2)."""
+        return self.decoder(z).unflatten(-1, (self.N, 2)) * self.length
+
+    def step(self, z: torch.Tensor, node: torch.Tensor, drag_in_frame: torch.Tensor) -> torch.Tensor:
+        """One move in latent space: z (B, latent), node (B,) int64, drag in the frame [m] (B, 2)."""
+        a = torch.cat([F.one_hot(node, self.N).to(z.dtype), drag_in_frame / self.scale], -1)
+        return z + self.dynamics(torch.cat([z, a], -1))
+
+    def rollout_in_frame(self, x0: torch.Tensor, node: torch.Tensor, drag: torch.Tensor,
+                         ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """From the rope x0 (B, N, 2) in the frame, H moves (node (B, H), drags in the frame (B, H, 2)): the decoded
+        ropes in the frame and the latents, H each."""
+        z = self.encode(x0)
+        base = x0 - self.decode(z) if self.residual_decoder else 0.0
+        ropes, latents = [], []
+        for t in range(node.shape[1]):
+            z = self.step(z, node[:, t], drag[:, t])
+            ropes.append(base + self.decode(z))
+            latents.append(z)
+        return ropes, latents
+
+    # ------------------------------------------------------------------ prediction (world frame)
+    def rollout(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor,
+                propagation: str = "mean") -> list[torch.Tensor]:
+        """The ropes after each of H moves from ``rope`` (B, N, 2) under node (B, H) and drag (B, H, 2) [m], in
+        the world frame: H tensors (B, N, 2). One model: ``propagation`` is accepted and has nothing to choose."""
+        fr = Frame.of(rope, node[:, 0], drag[:, 0], self.frame)
+        ropes, _ = self.rollout_in_frame(fr.points_in(rope), node, fr.vectors_in(drag))
+        return [fr.points_out(x) for x in ropes]
+
+    def predict(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
+        """(B, H, N, 2): the ropes after each move, world frame."""
+        return torch.stack(self.rollout(rope, node, drag), 1)
+
+    # ------------------------------------------------------------------ training
+    def loss(self, obs: dict[str, torch.Tensor], actions: torch.Tensor, rewards: torch.Tensor | None = None,
+             mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """obs["node_poses"] (B, L+1, N, 2), actions (B, L, 3), mask (B, L+1) of valid observations. Returns loss,
+        its parts (pred, consistency, recon, in squared largest-drag units) and err_cm (mean node distance of the
+        first predicted move)."""
+        rope = obs["node_poses"].float()
+        b, L = actions.shape[:2]
+        mask = torch.ones(b, L + 1, device=rope.device) if mask is None else mask.float()
+        node, drag = decode_node_action(actions.float(), self.p)
+        if self.training:
+            rope, node, drag = symmetry_transform(rope, node, drag, self.augment)
+        fr = Frame.of(rope[:, 0], node[:, 0], drag[:, 0], self.frame)
+        x = fr.points_in(rope)                                       # (B, L+1, N, 2) in the first move's frame
+        drag = fr.vectors_in(drag)
+        z_obs = self.encode(x)                                       # (B, L+1, latent)
+        sq = lambda err: (err / self.scale).square().sum(-1).mean(-1)   # noqa: E731  (B, ...) per rope
+        recon = (sq(self.decode(z_obs) - x) * mask).sum() / mask.sum().clamp_min(1)
+        z = z_obs[:, 0]
+        base = x[:, 0] - self.decode(z) if self.residual_decoder else 0.0
+        pred = cons = weight = 0.0
+        first_err = None
+        for t in range(L):
+            z = self.step(z, node[:, t], drag[:, t])
+            m = mask[:, t + 1]
+            w = self.rho ** t
+            err = base + self.decode(z) - x[:, t + 1]
+            pred = pred + w * (sq(err) * m).sum()
+            cons = cons + w * ((z - z_obs[:, t + 1].detach()).square().mean(-1) * m).sum()
+            weight = weight + w * m.sum()
+            if t == 0:
+                first_err = (err.norm(dim=-1).mean(-1) * m).detach().sum() / m.sum().clamp_min(1)
+        weight = torch.as_tensor(weight).clamp_min(1)
+        pred, cons = pred / weight, cons / weight
+        return {"loss": pred + self.consistency * cons + recon, "pred": pred, "consistency": cons, "recon": recon,
+                "err_cm": 100 * first_err}
+
