@@ -33,7 +33,8 @@ import torch.nn as nn
 from agents.models import hybrid
 from agents.common.cli import run_cli
 from agents.common.config import POLICIES, InputOptions, RunOptions, TaskOptions, check_model_free, part
-from agents.tools.policy import checkpoint_config, checkpoint_path, load_weights, read_checkpoint
+from agents.common.checkpoints import load_weights
+from agents.tools.policy import checkpoint_config, checkpoint_path, read_checkpoint
 from agents.ppo import ActorCritic
 from agents.common.rollout import PolicyRollouts, check_rollout_obs
 from agents.common.run import Run, learner

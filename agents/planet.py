@@ -9,9 +9,10 @@ Three world models (``model``):
 - "ensemble" (default, params/planet.yaml; agents/models/ensemble.py): PETS-style MLPs predicting one move's change of the
   rope from the rope, the grasped node and the drag; planned through by ``agents.models.ensemble.ModelPlanner`` with the
   planners' cost (shape error of the predicted rope against the observed target). Points and node actions only.
-- "latent" (params/planet-latent.yaml; agents/models/latent.py): an encoder, deterministic latent dynamics and a
-  decoder of the rope's change, in the frame of the first planned move (TD-MPC-style latent, PlaNet's decoder);
-  planned in latent space by the same ``ModelPlanner`` on the decoded rope's shape error. Points and node actions.
+- "latent" (params/planet-latent.yaml; agents/models/latent.py): an encoder to latent keypoints, deterministic
+  latent dynamics (each move in its own grasp frame) and a decoder of the rope's change (TD-MPC-style latent,
+  PlaNet's decoder); planned in latent space by the same ``ModelPlanner`` on the decoded rope's shape error. Points
+  and node actions (from pictures: the points the perception reads, obs "perceived").
 - "rssm" (params/planet-rssm.yaml; agents/models/rssm.py): PlaNet's recurrent state-space model, any observation, planned
   in latent space by ``agents.models.rssm.LatentPlanner`` (``LatentObjective``: minus the predicted rewards, or the decoded
   rope's shape error).
@@ -76,6 +77,8 @@ class PlaNetConfig:
                                    help="ensemble's planning cost: weight of the mean intermediate shape error")
     # the latent world model (agents/models/latent.py)
     latent_dim: int = option(128, "[1, inf)", help="latent: the latent state's size")
+    latent_kind: str = option("vector", help='latent: "vector" (an MLP latent, stepped in the first move\'s frame) or '
+                                             '"keypoints" (latent_dim / 2 points, each move in its own grasp frame)')
     latent_hidden: list = option(factory=lambda: [256, 256], layers=True,
                                  help="latent: hidden layers of its encoder, dynamics and decoder")
     residual_decoder: bool = option(True, help="latent: decode the change of the rope (x_0 + D(z_t) - D(z_0))")
@@ -136,7 +139,7 @@ class PlaNetConfig:
         if self.model == "ensemble":
             check_settings(self.members, self.model_hidden, self.augment, self.frame, self.propagation)
         if self.model == "latent":
-            check_latent_settings(self.latent_dim, self.latent_hidden, self.augment, self.frame)
+            check_latent_settings(self.latent_dim, self.latent_hidden, self.augment, self.frame, self.latent_kind)
             if self.plan_objective != "shape":
                 raise ValueError(f"model 'latent' plans on the decoded rope's shape error: plan_objective must be "
                                  f"'shape', got {self.plan_objective!r}")
@@ -159,7 +162,7 @@ def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int, p: CableParams) ->
         return EnsembleDynamics(p, cfg.members, cfg.model_hidden, cfg.augment, cfg.frame).to(cfg.run.device)
     if cfg.model == "latent":
         return LatentWorldModel(p, cfg.latent_dim, cfg.latent_hidden, cfg.augment, cfg.frame, cfg.residual_decoder,
-                                cfg.consistency, cfg.rho).to(cfg.run.device)
+                                cfg.consistency, cfg.rho, cfg.latent_kind).to(cfg.run.device)
     return RSSM(obs, action_dim, action_type=cfg.task.action, n_nodes=p.n_nodes, scale=1.0 / p.length,
                 deter=cfg.deter, stoch=cfg.stoch, hidden=cfg.hidden, embed=cfg.embed,
                 cnn_channels=cfg.cnn_channels, image_embed=cfg.image_embed, deconv_channels=cfg.deconv_channels,

@@ -215,3 +215,42 @@ def test_refine_stays_finite_when_two_nodes_coincide(params):
     start[:, 3] = start[:, 2]                      # a link of length 0: the norm's gradient is NaN there
     done = refine(start, render_uint8(truth, 64, 1.0), params.rest_length, 1.0, iters=5)
     assert torch.isfinite(done).all()
+
+
+def test_latent_world_model_acts_from_pictures_alone(tiny, tmp_path, monkeypatch):
+    """The latent world model from pictures (agents.planet --preset latent, obs "perceived"): it trains on the points
+    the perception reads, and its planner, bound to an env, reads of the simulator's state only the move counters
+    (which ropes started an episode): with the ropes and targets the env holds replaced by NaN while it plans, it
+    acts on the perception's reading of a pictures-only env exactly as on the env's own observation."""
+    from agents import planet
+    from agents.tools.policy import load_policy
+    out, p, _, _ = tiny
+    cfg = load_config(planet.PlaNetConfig, "planet-latent", dict(
+        param_overrides=PO, obs="perceived", perception=str(out), image_size=32, num_envs=4, max_steps=4,
+        total_steps=48, eval_every=48, eval_episodes=4, checkpoint_every=48, latent_dim=8, latent_hidden=[16, 16],
+        chunk_length=2, batch_size=8, seed_episodes=2, train_every=16, updates_per_train=2, candidates=8, elites=2,
+        iterations=2, openloop_episodes=2, openloop_context=1))
+    res = planet.train(cfg, tmp_path / "latent", progress=False)
+    assert res["env_steps"] == 48 and res["model"] == "latent"
+    policy = load_policy(tmp_path / "latent")
+    perceived = BatchedShapeControl(num_envs=3, obs_type="perceived", perception=out, params=p, image_size=32,
+                                    target="random")
+    pictures_only = BatchedShapeControl(num_envs=3, obs_type="image", mark_end=True, params=p, image_size=32,
+                                        target="random")
+    reading = Perception.load(out)
+
+    real = perceived.get_state
+
+    def counters_only(*args, **kwargs):
+        state = real(*args, **kwargs)
+        return dataclasses.replace(state, pos=torch.full_like(state.pos, float("nan")),
+                                   target=torch.full_like(state.target, float("nan")), info={})
+
+    for seed in (1, 2):
+        obs = perceived.reset(seed=seed)[0]
+        from_pixels = reading.perceive(pictures_only.reset(seed=seed)[0])
+        with monkeypatch.context() as m:
+            m.setattr(perceived, "get_state", counters_only)
+            a1 = policy.batched(perceived)(obs, True)
+            a2 = policy.batched(perceived)(from_pixels, True)
+        assert torch.equal(a1, a2) and a1.shape == (3, 3) and torch.isfinite(a1).all()

@@ -200,3 +200,14 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def load_weights(part: Any, state: Any, path: Path, name: str) -> None:
+    """``part.load_state_dict(state)``, or a ValueError naming the checkpoint file and the part when its state does
+    not fit what this run's config builds (another model's weights, another network size)."""
+    try:
+        part.load_state_dict(state)
+    except (RuntimeError, TypeError, AttributeError, KeyError, ValueError) as exc:
+        first = str(exc).strip().splitlines()
+        raise ValueError(f"{path}: the {name!r} weights do not fit the network its config builds "
+                         f"({first[0] if first else type(exc).__name__})") from None

@@ -29,8 +29,8 @@ from typing import Any, Callable
 import torch
 from tqdm import tqdm
 
-from agents.common.checkpoints import (CHECKPOINT, load_checkpoint, rng_state, save_checkpoint, seed_everything,
-                                       set_rng_state, torch_threads)
+from agents.common.checkpoints import (CHECKPOINT, load_checkpoint, load_weights, rng_state, save_checkpoint,
+                                       seed_everything, set_rng_state, torch_threads)
 from agents.common.config import to_dict
 from agents.common.envs import make_env
 from agents.common.evaluation import episode_records, eval_row, evaluate, evaluate_heldout, heldout_envs, write_results
@@ -101,7 +101,7 @@ class Run:
         if self.resume:
             ck = load_checkpoint(self.out / CHECKPOINT)
             for name, part in parts.items():
-                part.load_state_dict(ck[name])
+                load_weights(part, ck[name], self.out / CHECKPOINT, name)
             self.env.load_state_dict(ck["env"])
             self.obs = self.env.observe()
             self.stats.buf.extend(ck["episode_stats"])

@@ -4,16 +4,21 @@ planned through by CEM in latent space. ``model: latent`` of agents/planet.py (p
 Why not PlaNet's RSSM as it is: it predicts one move at 1.24 cm where "nothing moves" is 1.46 cm
 (docs/WORLD_MODELS.md). What the accurate models of this task have, and this one takes over:
 
-- **A canonical frame** (equivariance by canonicalisation, as Kaba et al. 2023 "Equivariance with learned
-  canonicalization functions", here a fixed one): a rollout is expressed in the frame of its FIRST move,
-  ``frame: grasp`` — origin at the grasped node, x along the drag (the ensemble's frame, agents/models/ensemble.py) —
-  or ``frame: centroid`` (origin at the rope's centroid, world axes). The encoder sees the rope in that frame, every
-  drag of the sequence is rotated into it, and the decoded ropes are rotated back: translations (and, in the grasp
-  frame, rotations) of the plane are exact by construction. The frame is a function of the observed rope and the
-  first action, so each planned candidate is encoded in its own frame (one small MLP call per candidate).
-- **Deterministic residual latent dynamics** z' = z + f(z, one-hot node, drag) (TD-MPC / TD-MPC2, Hansen et al.
-  2022, 2024: a move changes the rope almost deterministically; a stochastic latent bought nothing, step 1 of the
-  issue), trained through ``chunk_length`` moves open loop.
+- **A canonical frame** (equivariance by canonicalisation, as in Kaba et al. 2023 "Equivariance with learned
+  canonicalization functions", here a fixed one): a rollout is encoded in the frame of its FIRST move, ``frame:
+  grasp`` — origin at the grasped node, x along the drag (the ensemble's frame, agents/models/ensemble.py) — or
+  ``frame: centroid`` (origin at the rope's centroid, world axes); every drag of the sequence is rotated into it and
+  the decoded ropes are rotated back. Translations (and, in the grasp frame, rotations) of the plane are exact by
+  construction. The frame depends on the first action, so each planned candidate is encoded in its own frame (one
+  small MLP call per candidate).
+- **Latent keypoints** (``kind: keypoints``, the preset's; as in Manuelli et al. 2020 "Keypoints into the Future"):
+  the latent is K = latent / 2 learned points of the plane, the decoder an affine mix of them (so it commutes with
+  every rigid motion), and each move is stepped in ITS OWN grasp frame — the keypoints relative to the decoded
+  grasped node, rotated so that the drag points along +x — as the ensemble re-frames every move. ``kind: vector``
+  is an unstructured latent vector stepped in the first move's frame (its later moves come in any direction).
+- **Deterministic residual latent dynamics** z' = z + f(...) (TD-MPC / TD-MPC2, Hansen et al. 2022, 2024: a move
+  changes the rope almost deterministically; the RSSM's stochastic latent bought nothing, step 1 of the issue),
+  trained through ``chunk_length`` moves open loop.
 - **A decoder of the change** (``residual_decoder``): the rope after t latent steps is x_0 + D(z_t) - D(z_0), the
   observed rope plus the decoded change, so the autoencoder's own error cancels (the RSSM's change-of-the-rope
   decoder was its one option that helped, 1.24 -> 0.86 cm).
@@ -28,7 +33,7 @@ term weighted rho^t (TD-MPC2's horizon discount, 0.5):
 Planning: ``agents.models.ensemble.ModelPlanner`` / ``ModelObjective`` call ``rollout`` — encode each candidate's
 start once, step the latent H times, decode each step — and score the decoded ropes with the planners' cost
 (``planners.objective.sequence_cost``: shape error against the observed target). The acting model sees only the
-observation (points): the rope and the target.
+observation: the rope and the target (from pictures, obs "perceived": the points the perception network reads).
 """
 from __future__ import annotations
 
@@ -44,11 +49,15 @@ from diffdlo.params import CableParams
 from diffdlo.task import decode_node_action
 
 FRAMES = ("grasp", "centroid")
+KINDS = ("vector", "keypoints")
 AUGMENTS = ("mirror", "reverse")       # rotations are exact by construction in the grasp frame
 
 
-def check_latent_settings(latent: int, hidden: Sequence[int], augment: Sequence[str], frame: str) -> None:
+def check_latent_settings(latent: int, hidden: Sequence[int], augment: Sequence[str], frame: str,
+                          kind: str = "vector") -> None:
     """The latent model's settings, named when wrong (the model and PlaNet's config call it)."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown latent_kind {kind!r}: use one of {list(KINDS)}")
     if frame not in FRAMES:
         raise ValueError(f"unknown frame {frame!r} for the latent model: use one of {list(FRAMES)}")
     bad = sorted(set(augment) - set(AUGMENTS) - ({"rotate"} if frame == "centroid" else set()))
@@ -57,6 +66,9 @@ def check_latent_settings(latent: int, hidden: Sequence[int], augment: Sequence[
                          + (" (or rotate, with frame centroid)" if frame == "grasp" else ""))
     if isinstance(latent, bool) or not isinstance(latent, int) or latent < 1:
         raise ValueError(f"latent_dim must be an integer >= 1, got {latent!r}")
+    if kind == "keypoints" and latent % 2:
+        raise ValueError(f"latent_kind 'keypoints' holds latent_dim / 2 points of the plane: latent_dim must be even, "
+                         f"got {latent}")
     if (isinstance(hidden, str) or not hidden
             or not all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in hidden)):
         raise ValueError(f"latent_hidden must be a list of positive layer sizes, got {hidden!r}")
@@ -112,36 +124,62 @@ class Frame:
 
 
 class LatentWorldModel(nn.Module):
-    """Encoder E: rope in the frame (N x 2, in rope lengths) -> z; dynamics z' = z + f(z, one-hot node, drag in the
-    frame / largest drag); decoder D: z -> rope in the frame. ``rollout`` and ``predict`` take world-frame ropes and
-    node actions, as ``EnsembleDynamics``'s, so the same planner plans through either."""
+    """Encoder E: rope in the frame (N x 2, in rope lengths) -> z; dynamics z' = z + f(...); decoder D: z -> rope in
+    the frame. ``rollout`` and ``predict`` take world-frame ropes and node actions, as ``EnsembleDynamics``'s, so the
+    same planner plans through either.
+
+    ``kind``: "vector" — z is a vector, f(z, one-hot node, drag in the frame / largest drag), D an MLP; or
+    "keypoints" — z is latent / 2 learned points of the plane (latent keypoints, as in Manuelli et al. 2020 "Keypoints
+    into the Future"), D a learned affine combination of them (weights summing to 1 per node, so D commutes with
+    every rigid motion), and each move is stepped in ITS OWN grasp frame: the keypoints relative to the decoded
+    grasped node, rotated so that the drag points along +x, f(those, one-hot node, drag length), rotated back. Every
+    move of a rollout then sees what the first one sees in the vector kind."""
 
     def __init__(self, p: CableParams, latent: int = 128, hidden: Sequence[int] = (256, 256),
                  augment: Sequence[str] = ("mirror", "reverse"), frame: str = "grasp", residual_decoder: bool = True,
-                 consistency: float = 1.0, rho: float = 0.5):
+                 consistency: float = 1.0, rho: float = 0.5, kind: str = "vector"):
         super().__init__()
-        check_latent_settings(latent, hidden, augment, frame)
+        check_latent_settings(latent, hidden, augment, frame, kind)
+        self.kind = kind
         self.p, self.N, self.E = p, p.n_nodes, 1
         self.length, self.scale = float(p.length), float(p.action_scale)
         self.frame, self.augment = frame, tuple(augment)
         self.residual_decoder, self.consistency, self.rho = bool(residual_decoder), float(consistency), float(rho)
         self.latent = int(latent)
         self.encoder = mlp(2 * self.N, list(hidden), self.latent, nn.ELU)
-        self.dynamics = mlp(self.latent + self.N + 2, list(hidden), self.latent, nn.ELU)
-        self.decoder = mlp(self.latent, list(hidden), 2 * self.N, nn.ELU)
+        if kind == "keypoints":
+            self.K = self.latent // 2
+            self.dynamics = mlp(self.latent + self.N + 1, list(hidden), self.latent, nn.ELU)
+            self.mixing = nn.Parameter(torch.randn(self.N, self.K) / self.K ** 0.5)    # D: affine mix of keypoints
+        else:
+            self.dynamics = mlp(self.latent + self.N + 2, list(hidden), self.latent, nn.ELU)
+            self.decoder = mlp(self.latent, list(hidden), 2 * self.N, nn.ELU)
 
     # ------------------------------------------------------------------ pieces
     def encode(self, x: torch.Tensor) -> torch.Tensor:
-        """Ropes in the frame [m] (..., N, 2) -> latents (..., latent)."""
+        """Ropes in the frame [m] (..., N, 2) -> latents (..., latent) (keypoints: (K, 2) flattened, in rope
+        lengths)."""
         return self.encoder(x.flatten(-2) / self.length)
 
     def decode(self, z: torch.Tensor) -> torch.Tensor:
         """Latents (..., latent) -> ropes in the frame [m] (..., N, 2)."""
+        if self.kind == "keypoints":
+            w = self.mixing - self.mixing.mean(-1, keepdim=True) + 1.0 / self.K         # rows sum to 1
+            return torch.einsum("nk,...kd->...nd", w, z.unflatten(-1, (self.K, 2))) * self.length
         return self.decoder(z).unflatten(-1, (self.N, 2)) * self.length
 
     def step(self, z: torch.Tensor, node: torch.Tensor, drag_in_frame: torch.Tensor) -> torch.Tensor:
         """One move in latent space: z (B, latent), node (B,) int64, drag in the frame [m] (B, 2)."""
-        a = torch.cat([F.one_hot(node, self.N).to(z.dtype), drag_in_frame / self.scale], -1)
+        onehot = F.one_hot(node, self.N).to(z.dtype)
+        if self.kind == "keypoints":                      # in this move's own grasp frame
+            pts = z.unflatten(-1, (self.K, 2))
+            grasped = self.decode(z).gather(-2, node[:, None, None].expand(-1, 1, 2)) / self.length
+            move = Frame.of(torch.cat([grasped, pts], -2), torch.zeros_like(node), drag_in_frame, "grasp")
+            local = move.points_in(pts)
+            dist = drag_in_frame.norm(dim=-1, keepdim=True) / self.scale
+            d = self.dynamics(torch.cat([local.flatten(-2), onehot, dist], -1)).unflatten(-1, (self.K, 2))
+            return z + Frame.rotate_out(d, move.c, move.s).flatten(-2)
+        a = torch.cat([onehot, drag_in_frame / self.scale], -1)
         return z + self.dynamics(torch.cat([z, a], -1))
 
     def rollout_in_frame(self, x0: torch.Tensor, node: torch.Tensor, drag: torch.Tensor,
@@ -176,10 +214,11 @@ class LatentWorldModel(nn.Module):
         """obs["node_poses"] (B, L+1, N, 2), actions (B, L, 3), mask (B, L+1) of valid observations. Returns loss,
         its parts (pred, consistency, recon, in squared largest-drag units) and err_cm (mean node distance of the
         first predicted move)."""
-        rope = obs["node_poses"].float()
+        dtype = self.dynamics[0].weight.dtype                   # the model's: float32, or float64 for checks
+        rope = obs["node_poses"].to(dtype)
         b, L = actions.shape[:2]
-        mask = torch.ones(b, L + 1, device=rope.device) if mask is None else mask.float()
-        node, drag = decode_node_action(actions.float(), self.p)
+        mask = torch.ones(b, L + 1, device=rope.device, dtype=dtype) if mask is None else mask.to(dtype)
+        node, drag = decode_node_action(actions.to(dtype), self.p)
         if self.training:
             rope, node, drag = symmetry_transform(rope, node, drag, self.augment)
         fr = Frame.of(rope[:, 0], node[:, 0], drag[:, 0], self.frame)

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from agents.common import config as config_lib
-from agents.common.checkpoints import CHECKPOINT, load_checkpoint
+from agents.common.checkpoints import CHECKPOINT, load_checkpoint, load_weights
 from agents.common.envs import TrainEnv, make_env
 from diffdlo.envs import BatchedShapeControl, EnvOptions
 
@@ -89,15 +89,6 @@ def checkpoint_config(ck: dict[str, Any], path: Path, device: str):
     moved = config_lib.replace(cfg, device=str(device), env_device=env_device)
     moved.run.check()                  # an unknown or unavailable device: its own message
     return moved
-
-
-def load_weights(net: torch.nn.Module, state: Any, path: Path, part: str) -> None:
-    try:
-        net.load_state_dict(state)
-    except (RuntimeError, TypeError, AttributeError, KeyError) as exc:
-        first = str(exc).strip().splitlines()
-        raise ValueError(f"{path}: the {part!r} weights do not fit the network its config builds "
-                         f"({first[0] if first else type(exc).__name__})") from None
 
 
 # ====================================================================== the acting networks, rebuilt

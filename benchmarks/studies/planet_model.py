@@ -1,7 +1,8 @@
-"""How well can PlaNet's world model (agents/models/rssm.py) predict the rope, apart from the planning loop?
+"""How well can PlaNet's world models (agents/models/: ensemble, latent, rssm) predict the rope, apart from the
+planning loop?
 
 Collect random-move episodes (uniform actions, the same distribution as ``openloop.open_loop_eval``'s
-held-out ropes) into the shared replay buffer, train the RSSM on chunks exactly as ``agents/planet.py`` does, and
+held-out ropes) into the shared replay buffer, train the model on chunks exactly as ``agents/planet.py`` does, and
 print the open-loop node error after 1, 2, 5 and 10 moves next to the "nothing moves" baseline at a few update counts.
 
     python benchmarks/studies/planet_model.py --updates 2000            # ~5 min on one CPU core
@@ -12,6 +13,8 @@ print the open-loop node error after 1, 2, 5 and 10 moves next to the "nothing m
     python benchmarks/studies/planet_model.py --envs 64 --moves 160 --preset rssm --updates 4000 \
         --set rssm_frame=centroid        # or rssm_residual=true, kl_balance=dreamerv3 (+ free_nats=1): the RSSM's
                                          # diagnosis options (issue 47, docs/WORLD_MODELS.md), one at a time
+    python benchmarks/studies/planet_model.py --envs 64 --moves 160 --preset latent --updates 3000 \
+        --set latent_kind=vector         # the latent world model (agents/models/latent.py) and its options
 
 Used to size ``seed_episodes`` in params/planet.yaml: trained on random moves only, the model beats the baseline
 after ~1000 updates; trained in the loop on 500 random and 9500 planner-chosen moves (the old default), it did not.

@@ -22,7 +22,8 @@ import torch
 
 from agents.common.envs import TrainEnv
 from agents.common.evaluation import evaluate
-from agents.tools.policy import checkpoint_config, checkpoint_path, load_weights, read_checkpoint
+from agents.common.checkpoints import load_weights
+from agents.tools.policy import checkpoint_config, checkpoint_path, read_checkpoint
 from agents.ppo import ActorCritic
 from agents.common.rollout import PolicyRollouts
 from diffdlo.envs import BatchedShapeControl, EnvOptions
