@@ -15,7 +15,7 @@ nice -n 10 $C --methods ppo --variants fewest_moves
 # every other row in one pool, so both jobs stay busy to the last cell: the main rows first, cheapest first, then
 # the named lines (planners), the distillation (its teacher: the same seed's ppo/fewest_moves cell), the APG
 # variants and the secondary rows
-nice -n 10 $C --rows cem/tuned_image ppo/tuned_image pets/tuned_image pets/tuned sac/tuned planet/default \
+nice -n 10 $C --rows cem/tuned_image ppo/tuned_image pets/tuned_image latent/tuned_image pets/tuned latent/tuned sac/tuned planet/default \
     sac/tuned_image planet/image greedy/default cem/default gradient/default distill/default \
     apg/greedy apg/h4 apg/h4_critic apg/score sac/points ppo/points sac/abs_diff sac/delta_gain \
     sac/points_utd1 pets/upt100 pets/h2 sac/image ppo/image ppo/image_e2e

@@ -60,7 +60,7 @@ def test_grid_is_data_and_filters_work(tmp_path):
     full = compare.load_grid(quick=False)
     cells = compare.build_cells(full, tmp_path)
     assert len(full["seeds"]) >= 5
-    assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "pets", "planet", "apg", "distill"}
+    assert {c["method"] for c in cells} == {"greedy", "cem", "gradient", "sac", "ppo", "pets", "latent", "planet", "apg", "distill"}
     heldout = set(full["heldout"])
     # honest names: the ensemble world model is PETS-style, PlaNet is the RSSM; both run agents.planet
     pets, rssm = (compare.build_cells(full, tmp_path, methods=[m], targets=["random"], seeds=[0])[0]
@@ -71,7 +71,7 @@ def test_grid_is_data_and_filters_work(tmp_path):
     # the main grid: every main row on every main task it can run (learners train on random and random_curve and
     # are evaluated on the held-out shapes), five seeds
     main = {(m, v) for m, v in compare.main_rows(full)}
-    assert {m for m, _ in main} == {"greedy", "cem", "gradient", "sac", "ppo", "pets", "planet", "apg"}
+    assert {m for m, _ in main} == {"greedy", "cem", "gradient", "sac", "ppo", "pets", "latent", "planet", "apg"}
     for m, v in main:
         tasks = {c["target"] for c in cells if (c["method"], c["variant"]) == (m, v)}
         kind = full["methods"][m]["kind"]
