@@ -141,7 +141,7 @@ class LatentWorldModel(nn.Module):
         super().__init__()
         check_latent_settings(latent, hidden, augment, frame, kind)
         self.kind = kind
-        self.p, self.N, self.E = p, p.n_nodes, 1
+        self.p, self.N = p, p.n_nodes
         self.length, self.scale = float(p.length), float(p.action_scale)
         self.frame, self.augment = frame, tuple(augment)
         self.residual_decoder, self.consistency, self.rho = bool(residual_decoder), float(consistency), float(rho)
