@@ -52,15 +52,40 @@ def reward_position_orientation(pos: torch.Tensor, target: torch.Tensor) -> torc
     return -pairwise_shape_term(pos, target) - orientation_error(pos, target)
 
 
+def node_errors(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B, N) each node's distance [m] to its place in the target after aligning the centroids of rope and target
+    (node i against target node i): the per-node figure ``shape_error`` averages and ``worst_node_error`` maxes."""
+    target = target.expand_as(pos)
+    a = pos - pos.mean(dim=-2, keepdim=True)
+    b = target - target.mean(dim=-2, keepdim=True)
+    return (a - b).norm(dim=-1)
+
+
 def shape_error(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """(B,) mean node distance [m] between rope and target after aligning their centroids.
 
     Translation-free, orientation-sensitive; node i is compared with target node i.
     """
-    target = target.expand_as(pos)
-    a = pos - pos.mean(dim=-2, keepdim=True)
-    b = target - target.mean(dim=-2, keepdim=True)
-    return (a - b).norm(dim=-1).mean(-1)
+    return node_errors(pos, target).mean(-1)
+
+
+def worst_node_error(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) the largest node distance [m] between rope and target after aligning their centroids (the alignment of
+    ``shape_error``, the max over nodes in place of the mean): how far the worst-placed node, e.g. a hooked end, is
+    from its place. Never below shape_error; equal to it when every node is equally far (a rigid shift: 0 for
+    both)."""
+    return node_errors(pos, target).amax(-1)
+
+
+def within_tolerance(mean_error, worst_error, tol: float, worst_tol: float | None = None):
+    """The task's success test on errors already measured: mean_error < tol and, when ``worst_tol`` is given,
+    worst_error < worst_tol. Tensors (B,) give a bool tensor, floats a bool; ``worst_error`` is not read when
+    ``worst_tol`` is None (it may be None then). The env (``diffdlo.task``) and the comparison's tolerance helper
+    (``benchmarks.compare.stats.success_move``) both test with it."""
+    ok = mean_error < tol
+    if worst_tol is not None:
+        ok = ok & (worst_error < worst_tol)
+    return ok
 
 
 def reward_shape_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -71,9 +96,13 @@ def reward_shape_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.T
     return 100.0 * (shape_error(prev_pos, target) - shape_error(pos, target))
 
 
-def is_success(pos: torch.Tensor, target: torch.Tensor, tol: float = 0.01) -> torch.Tensor:
-    """(B,) bool: shape_error < tol (default 1 cm, 2% of the rope length)."""
-    return shape_error(pos, target) < tol
+def is_success(pos: torch.Tensor, target: torch.Tensor, tol: float = 0.01,
+               worst_tol: float | None = None) -> torch.Tensor:
+    """(B,) bool: shape_error < tol (default 1 cm, 2% of the rope length, params/cable.yaml's success_tol) and, when
+    ``worst_tol`` is given, worst_node_error < worst_tol (``within_tolerance``). The env reads its tolerances from
+    its options (``EnvOptions.success_tol``, ``success_worst_tol``), not from this default."""
+    worst = worst_node_error(pos, target) if worst_tol is not None else None
+    return within_tolerance(shape_error(pos, target), worst, tol, worst_tol)
 
 
 REWARDS = ("position_orientation", "abs_diff", "delta_gain", "shape_gain")

@@ -8,8 +8,8 @@ call these functions rather than restating them:
 - actions: ``decode_node`` / ``decode_drag`` / ``encode_node_action`` (the node action, eq 2.6),
   ``decode_pixel_node`` (the pixel action, eq 2.5), ``decode_action`` (either);
 - the greedy move (the node farthest from its place, dragged towards it): ``greedy_drags``;
-- rewards, success and episode end: ``step_outcome``, by the env's options (``diffdlo.envs.EnvOptions``; the rewards
-  themselves are in diffdlo/rewards.py, eq 2.7-2.11);
+- rewards, success and episode end: ``step_outcome`` (its success test ``is_success``), by the env's options
+  (``diffdlo.envs.EnvOptions``; the rewards and the errors themselves are in diffdlo/rewards.py, eq 2.7-2.11);
 - observations: ``observation_space`` and ``observe``.
 
 A new target family, reward, action head or observation is an addition here.
@@ -26,7 +26,7 @@ from gymnasium import spaces
 
 from . import image as rimage
 from .params import CableParams
-from .rewards import orientation_error, reward as move_reward, shape_error
+from .rewards import node_errors, orientation_error, reward as move_reward, within_tolerance
 from .shapes import CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape
 
 
@@ -144,16 +144,17 @@ def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torc
                  steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Score the moves prev -> new (B, N, 2) towards ``target`` after ``steps`` (B,) moves (this one included), by
     the rules of resolved env options (``EnvOptions.resolve()``, an env's ``options``): reward, success_tol,
-    max_steps, success_bonus, step_penalty, on_exit, exit_penalty and workspace (thesis Algorithm 2 with the error
-    metric; the options after max_steps are ours, off by default).
+    success_worst_tol, max_steps, success_bonus, step_penalty, on_exit, exit_penalty and workspace (thesis
+    Algorithm 2 with the error metric; the options after max_steps are ours, off by default).
 
-    Returns (reward, terminated, truncated, success), each (B,). Success: shape_error < success_tol; it
-    terminates with reward success_bonus. A node outside the workspace rectangle (centred at the origin) truncates
+    Returns (reward, terminated, truncated, success), each (B,). Success (``is_success``): shape_error <
+    success_tol and, when success_worst_tol is set, worst_node_error < success_worst_tol; it terminates with reward
+    success_bonus. A node outside the workspace rectangle (centred at the origin) truncates
     the episode (on_exit "truncate", Algorithm 2) or terminates it with reward -exit_penalty (on_exit "fail");
     reaching max_steps truncates. Every other move gets the named reward minus step_penalty.
     """
     r = move_reward(rules.reward, prev, new, target)
-    success = shape_error(new, target) < rules.success_tol
+    success = is_success(new, target, rules.success_tol, rules.success_worst_tol)
     half = torch.tensor(rules.workspace, device=new.device, dtype=new.dtype) / 2
     outside = (new.abs() > half).flatten(1).any(1) & ~success
     failed = outside if rules.on_exit == "fail" else torch.zeros_like(outside)
@@ -163,12 +164,23 @@ def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torc
     return torch.where(failed, torch.full_like(r, -rules.exit_penalty), r), terminated, truncated, success
 
 
-def task_metrics(pos: torch.Tensor, target: torch.Tensor, success_tol: float) -> dict[str, torch.Tensor]:
-    """The per-rope figures an env reports after every reset and move: shape_error [m], orientation_error [rad],
-    is_success."""
-    err = shape_error(pos, target)
-    return {"shape_error": err.detach(), "orientation_error": orientation_error(pos, target).detach(),
-            "is_success": err < success_tol}
+def is_success(pos: torch.Tensor, target: torch.Tensor, success_tol: float,
+               success_worst_tol: float | None = None) -> torch.Tensor:
+    """(B,) the task's success test of ropes ``pos`` (B, N, 2): shape_error < success_tol and, when
+    ``success_worst_tol`` is not None, worst_node_error < success_worst_tol (``diffdlo.rewards.within_tolerance``)."""
+    errors = node_errors(pos, target)
+    return within_tolerance(errors.mean(-1), errors.amax(-1), success_tol, success_worst_tol)
+
+
+def task_metrics(pos: torch.Tensor, target: torch.Tensor, success_tol: float,
+                 success_worst_tol: float | None = None) -> dict[str, torch.Tensor]:
+    """The per-rope figures an env reports after every reset and move: shape_error [m] (the mean node distance),
+    worst_node_error [m] (the largest), orientation_error [rad], is_success (``is_success``'s test)."""
+    errors = node_errors(pos, target)
+    err, worst = errors.mean(-1), errors.amax(-1)
+    return {"shape_error": err.detach(), "worst_node_error": worst.detach(),
+            "orientation_error": orientation_error(pos, target).detach(),
+            "is_success": within_tolerance(err, worst, success_tol, success_worst_tol)}
 
 
 # ====================================================================== observations

@@ -26,7 +26,7 @@ from .options import EnvOptions, _choice_error, check_actions, env_options
 from .state import EnvState
 
 RENDER_SIZE = 256
-INFO_KEYS = ("shape_error", "orientation_error", "is_success", "node", "substeps")
+INFO_KEYS = ("shape_error", "worst_node_error", "orientation_error", "is_success", "node", "substeps")
 AUTORESET_MODES = (None, "next_step", "same_step")
 
 
@@ -35,11 +35,11 @@ class BatchedShapeControl:
 
     ``BatchedShapeControl(num_envs, options)`` or ``BatchedShapeControl(num_envs, **keywords)``: the task's options
     are one ``EnvOptions`` (diffdlo/envs/options.py; each field's help says what it does), given as such or as its
-    field names (target, obs_type, action_type, reward, max_steps, success_tol, params, image_size, view_size,
-    success_bonus, step_penalty, on_exit, exit_penalty, curve_max_turn_deg, mark_end, start, max_episode_steps,
-    action_scale, perception, perception_refine), not both; the shared gymnasium envs take the same. ``options``
-    holds them resolved (the params, the episode length). num_envs: B. device, dtype, backend: of the simulator
-    (backend "torch" forces the eager reference path).
+    field names (target, obs_type, action_type, reward, max_steps, success_tol, success_worst_tol, params,
+    image_size, view_size, success_bonus, step_penalty, on_exit, exit_penalty, curve_max_turn_deg, mark_end, start,
+    max_episode_steps, action_scale, perception, perception_refine), not both; the shared gymnasium envs take the
+    same. ``options`` holds them resolved (the params, the episode length). num_envs: B. device, dtype, backend: of
+    the simulator (backend "torch" forces the eager reference path).
     Episode end: diffdlo.task.step_outcome (Algorithm 2 with the error metric). ``info["is_success"]`` tells a
     success from a failure: ``terminated`` alone does not, under on_exit="fail".
     """
@@ -69,7 +69,8 @@ class BatchedShapeControl:
         self._state = EnvState(
             pos=torch.zeros(b, n, 2, **kw), target=torch.zeros(b, n, 2, **kw),
             steps=torch.zeros(b, dtype=torch.int64, device=self.device),
-            info={"shape_error": torch.zeros(b, **kw), "orientation_error": torch.zeros(b, **kw),
+            info={"shape_error": torch.zeros(b, **kw), "worst_node_error": torch.zeros(b, **kw),
+                  "orientation_error": torch.zeros(b, **kw),
                   "is_success": torch.zeros(b, dtype=torch.bool, device=self.device),
                   "node": torch.full((b,), -1, dtype=torch.int64, device=self.device),
                   "substeps": torch.zeros(b, dtype=torch.int64, device=self.device)},
@@ -103,6 +104,10 @@ class BatchedShapeControl:
     @property
     def success_tol(self) -> float:
         return self.options.success_tol
+
+    @property
+    def success_worst_tol(self) -> float | None:
+        return self.options.success_worst_tol
 
     @property
     def reward_type(self) -> str:
@@ -151,8 +156,10 @@ class BatchedShapeControl:
                              f"{tuple(s.target.shape)}")
         s.steps, s.needs_reset = s.steps.to(self.device), s.needs_reset.cpu()
         s.info = {k: v.to(self.device) for k, v in s.info.items()}
-        if state is None:
-            s.info.update(task.task_metrics(s.pos, s.target, self.success_tol))
+        missing = [k for k in INFO_KEYS if k not in s.info]   # a state saved before a figure was reported (an older
+        if state is None or missing:                          # checkpoint): that figure now, from its ropes
+            metrics = task.task_metrics(s.pos, s.target, self.success_tol, self.success_worst_tol)
+            s.info.update(metrics if state is None else {k: v for k, v in metrics.items() if k in missing})
         self._state = s
         self._pictures, self._seen_target = None, None
         self.has_reset = True
@@ -288,15 +295,15 @@ class BatchedShapeControl:
 
     def _update_info(self, ids, pos, target, node, substeps) -> None:
         info = self._state.info
-        for k, v in task.task_metrics(pos, target, self.success_tol).items():
+        for k, v in task.task_metrics(pos, target, self.success_tol, self.success_worst_tol).items():
             info[k][ids] = v
         info["node"][ids] = node.to(self.device)
         info["substeps"][ids] = substeps.to(self.device)
 
     # ----------------------------------------------------------------- observations
     def info(self) -> dict[str, torch.Tensor]:
-        """Per-env info tensors (B,): shape_error [m], orientation_error [rad], is_success, node (-1 after a reset),
-        substeps (of the last move, or of the settle after a reset)."""
+        """Per-env info tensors (B,): shape_error [m], worst_node_error [m], orientation_error [rad], is_success, node
+        (-1 after a reset), substeps (of the last move, or of the settle after a reset)."""
         return {k: v.clone() for k, v in self._state.info.items()}
 
     def render_images(self, ropes: torch.Tensor | None, targets: torch.Tensor | None,

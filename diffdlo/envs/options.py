@@ -63,9 +63,10 @@ class EnvOptions:
 
     Checked when built (a ValueError names the field, what is allowed and the value). ``resolve()`` gives the
     options the env runs with: the params a CableParams (action_scale applied), max_steps, success_tol and
-    success_bonus filled in from the params, max_steps cut to max_episode_steps, the target checked; those are
-    also the rules ``diffdlo.task.step_outcome`` reads (with ``workspace``). Change a resolved one by resolving a
-    ``dataclasses.replace`` of the options as given: the filled-in values follow the params they came from.
+    success_bonus filled in from the params (success_worst_tol as given), max_steps cut to max_episode_steps, the
+    target checked; those are also the rules ``diffdlo.task.step_outcome`` reads (with ``workspace``). Change a
+    resolved one by resolving a ``dataclasses.replace`` of the options as given: the filled-in values follow the
+    params they came from.
     The simulator's placement (device, dtype, backend) is not an option: the env takes it beside them.
     """
     target: Any = option("random", help=(
@@ -98,8 +99,13 @@ class EnvOptions:
         "gymnasium's time limit (``make_vec(..., max_episode_steps=)``; the registered spec's is 100): episodes are "
         "truncated after min(max_steps, max_episode_steps) moves, as ``gymnasium.make``'s TimeLimit wrapper over "
         "the env's own truncation does. None: max_steps alone"))
-    success_tol: float | None = option(None, "(0, inf)", says="a positive number [m]", help=(
-        "shape error [m] below which a move succeeds (None: params.success_tol)"))
+    success_tol: float | None = option(None, "(0, inf)", says="a positive finite number [m]", help=(
+        "shape error [m] (the mean node distance, diffdlo.rewards.shape_error) below which a move succeeds (None: "
+        "params.success_tol: 0.01 in params/cable.yaml, Table 2.1)"))
+    success_worst_tol: float | None = option(None, "(0, inf)", says="a positive finite number [m] or None", help=(
+        "worst node error [m] (the largest node distance, diffdlo.rewards.worst_node_error) below which a move "
+        "succeeds too: success is shape error < success_tol AND worst node error < success_worst_tol (None: no "
+        "worst-node condition, the thesis's test)"))
     image_size: int = option(64, "[8, inf)", says="an integer >= 8", help=(
         "side S [px] of image observations (and of the perceived pictures)"))
     view_size: float = option(DEFAULT_VIEW_SIZE, "(0, inf)", says="a positive number [m]", help=(
@@ -178,6 +184,7 @@ class EnvOptions:
         return dataclasses.replace(
             self, params=p, action_scale=p.action_scale, max_steps=int(limit),
             success_tol=float(p.success_tol if self.success_tol is None else self.success_tol),
+            success_worst_tol=None if self.success_worst_tol is None else float(self.success_worst_tol),
             success_bonus=float(p.success_bonus if self.success_bonus is None else self.success_bonus),
             step_penalty=float(self.step_penalty), exit_penalty=float(self.exit_penalty),
             view_size=float(self.view_size), curve_max_turn_deg=float(self.curve_max_turn_deg))

@@ -28,7 +28,8 @@ class ShapeControlEnv(gym.Env):
     ``render_mode``: None or "rgb_array" (a 256 x 256 RGB picture, rope red over target blue).
 
     Actions outside [0, 1] are clipped to [0, 1]; NaN/inf actions or a wrong shape raise ValueError.
-    ``info``: shape_error [m], orientation_error [rad], is_success, node (grasped node, -1 after reset), substeps.
+    ``info``: shape_error [m], worst_node_error [m], orientation_error [rad], is_success, node (grasped node, -1
+    after reset), substeps.
     ``reset(seed=s, options={"target": spec})``: seeded random start shape + settle; the target spec is kept.
     A diverged simulation raises diffdlo.SimulationError (never a NaN observation).
 
@@ -64,7 +65,7 @@ class ShapeControlEnv(gym.Env):
 
     @staticmethod
     def _info(info: dict[str, torch.Tensor]) -> dict[str, Any]:
-        return {"shape_error": float(info["shape_error"][0]),
+        return {"shape_error": float(info["shape_error"][0]), "worst_node_error": float(info["worst_node_error"][0]),
                 "orientation_error": float(info["orientation_error"][0]),
                 "is_success": bool(info["is_success"][0]), "node": int(info["node"][0]),
                 "substeps": int(info["substeps"][0])}

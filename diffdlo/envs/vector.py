@@ -50,9 +50,9 @@ class ShapeControlVectorEnv(VectorEnv):
     the single env).
 
     Actions (num_envs, A) outside [0, 1] are clipped; NaN/inf or a wrong shape raise ValueError. ``info`` holds
-    numpy arrays (num_envs,) for shape_error, orientation_error, is_success, node, substeps, each with its
-    ``_key`` mask (all True: every sub-env reports every step). ``options={"reset_mask": mask}`` resets only the
-    masked sub-envs. ``render()`` (render_mode="rgb_array") returns a tuple of 256 x 256 RGB pictures.
+    numpy arrays (num_envs,) for shape_error, worst_node_error, orientation_error, is_success, node, substeps, each
+    with its ``_key`` mask (all True: every sub-env reports every step). ``options={"reset_mask": mask}`` resets
+    only the masked sub-envs. ``render()`` (render_mode="rgb_array") returns a tuple of 256 x 256 RGB pictures.
     The torch-native core is ``self.core``.
 
     ``autoreset_mode`` (declared in ``self.metadata["autoreset_mode"]``), laid out as gymnasium's SyncVectorEnv:
