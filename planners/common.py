@@ -3,7 +3,9 @@
 A planner has ``name``, ``sim_evals`` (rope-moves it has simulated), ``reset(seed)`` (new episode; its generator
 re-seeded with the episode's seed, so an episode's plan does not depend on the episodes before it) and
 ``plan(pos (N, 2), target (N, 2)) -> action (3,)`` (an env node action in [0, 1]^3); ``run_episode`` executes
-its first action in ``BatchedShapeControl`` and replans until success (shape_error < success_tol) or max_steps.
+its first action in ``BatchedShapeControl`` and replans until success (shape_error < success_tol and, with
+``--success-worst-tol``, worst_node_error < it: the env's test) or max_steps. The episode's record keeps the mean
+error ("errors") and the worst node's error ("worst_errors") after the reset and after every move.
 Episode i starts from ``env.reset(seed=seed + i)``; with ``--target random`` or ``random_curve`` (a family in
 diffdlo.shapes.TARGET_FAMILIES) that reset also draws episode i's target, recorded under the episode in results.json.
 That is the learners' evaluation rule too (agents/common/evaluation.py: episode i of a one-rope or batched evaluation env
@@ -69,12 +71,14 @@ def check_same_moves(model: CableParams, real: CableParams) -> None:
 
 
 def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *, max_steps: int,
-              success_tol: float | None, device: str, seed: int, options: dict[str, Any]):
+              success_tol: float | None, device: str, seed: int, options: dict[str, Any],
+              success_worst_tol: float | None = None):
     """The env (moving and scoring the ``real`` rope) and the planner (planning on a Simulator of ``model``), with
     the target set. Returns (env, planner, target), target None for a family (drawn per episode). Raises ParamsError
     (ropes that disagree on SAME_MOVES), TargetError, or ValueError/RuntimeError (the env's options, the device)."""
     check_same_moves(model, real)
-    task_options = EnvOptions(target="horizontal", max_steps=max_steps, success_tol=success_tol, params=real)
+    task_options = EnvOptions(target="horizontal", max_steps=max_steps, success_tol=success_tol,
+                              success_worst_tol=success_worst_tol, params=real)
     env = BatchedShapeControl(1, task_options, device=device)
     target = task.resolve_target(target_spec, model, env.device, env.dtype)
     env.set_target(target)
@@ -94,7 +98,9 @@ def seen(points: torch.Tensor, perception, rope: bool = True) -> torch.Tensor:
 
 def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", progress: bool = True,
                 perception=None) -> dict[str, Any]:
-    """One episode of receding-horizon control. Returns the episode record plus its frames (T+1, N, 2).
+    """One episode of receding-horizon control. Returns the episode record plus its frames (T+1, N, 2). The record's
+    "errors" and "worst_errors" (T+1 each): the shape error and the worst node's error [m] after the reset and after
+    each move, the env's own figures.
     ``perception``: the planner is given the rope and the target as this perception reads them from the env's
     pictures (the target once per episode), not the simulator's state; "seen_error_mm" records how far off they were
     (mean node distance, averaged over the moves)."""
@@ -106,6 +112,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     seen_errors: list[float] = []
     frames = [state.pos[0]]
     errors = [float(state.info["shape_error"][0])]
+    worst_errors = [float(state.info["worst_node_error"][0])]
     grad0 = getattr(planner, "grad_evals", 0)
     if hasattr(planner, "grad_norms"):
         planner.grad_norms = []
@@ -123,6 +130,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         steps += 1
         frames.append(env.get_state(generators=False).pos[0])
         errors.append(float(info["shape_error"][0]))
+        worst_errors.append(float(info["worst_node_error"][0]))
         success = bool(info["is_success"][0])
         bar.update(1)
         bar.set_postfix(err_cm=f"{errors[-1] * 100:.2f}", node=int(info["node"][0]))
@@ -136,7 +144,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         stats["seen_error_mm"] = 1000 * sum(seen_errors) / max(len(seen_errors), 1)
         stats["seen_target_error_mm"] = 1000 * float((planned_target - target).norm(dim=-1).mean())
     return {**stats, "success": success, "steps": steps, "final_error": errors[-1], "start_error": errors[0],
-            "errors": errors, "sim_evals": planner.sim_evals - evals0, "plan_s": plan_s,
+            "errors": errors, "worst_errors": worst_errors, "sim_evals": planner.sim_evals - evals0, "plan_s": plan_s,
             "plan_s_per_step": plan_s / max(steps, 1), "seed": seed, "target_name": target_name,
             "frames": torch.stack(frames),
             "target_points": target}
@@ -163,7 +171,11 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
     parser.add_argument("--real-scale", action="append", default=None, metavar="KEY=FACTOR",
                         help=f"multiply the real rope's {', '.join(PHYSICAL)} (those of --real-params, else of "
                              f"--params) by FACTOR > 0; repeat for several keys, e.g. --real-scale k_d=2")
-    parser.add_argument("--success-tol", type=float, default=None, help="success threshold [m] (default params: 0.01)")
+    parser.add_argument("--success-tol", type=float, default=None,
+                        help="success threshold [m] of the shape error, the mean node distance (default params: 0.01)")
+    parser.add_argument("--success-worst-tol", type=float, default=None,
+                        help="also require the worst node's error [m] below this for success (default: no "
+                             "worst-node condition)")
     parser.add_argument("--perception", default=None, metavar="PATH",
                         help="plan from the rope and target as this perception checkpoint reads them from the env's "
                              "pictures (python -m diffdlo.perception), not from the simulator's state")
@@ -202,8 +214,10 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     try:
         check_interval("--episodes", args.episodes, "[1, inf)")
         check_interval("--max-steps", args.max_steps, "[1, inf)")
-        if args.success_tol is not None:
-            check_interval("--success-tol", args.success_tol, "(0, inf)")
+        for flag in ("--success-tol", "--success-worst-tol"):
+            value = getattr(args, flag[2:].replace("-", "_"))
+            if value is not None:
+                check_interval(flag, value, "(0, inf)")
         check_planner_options(planner_cls, {k: getattr(args, k) for k in planner_cls.OPTIONS})
     except ValueError as exc:
         parser.error(str(exc))
@@ -226,7 +240,7 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     try:
         env, planner, target = build_run(planner_cls, p, real, args.target, max_steps=args.max_steps,
                                          success_tol=args.success_tol, device=args.device, seed=args.seed,
-                                         options=options)
+                                         options=options, success_worst_tol=args.success_worst_tol)
     except TargetError as exc:
         return refuse(f"bad --target {args.target!r}: {exc}")
     except (ValueError, RuntimeError) as exc:

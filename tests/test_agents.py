@@ -122,7 +122,8 @@ def test_cli_smoke_writes_everything_and_resumes(algo, obs, action, tmp_path, ca
     res = json.loads((tmp_path / "results.json").read_text())
     assert {"method", "target", "seed", "success_rate", "episodes", "env_steps", "wall_s"} <= set(res)
     assert res["method"] == algo and res["env_steps"] == 256 and len(res["episodes"]) == 8
-    assert set(res["episodes"][0]) == {"success", "steps", "final_error", "start_error", "target_name"}
+    assert set(res["episodes"][0]) == {"success", "steps", "final_error", "start_error", "target_name", "errors",
+                                       "worst_errors"}
     assert set(res["shapes"]) == {"start", "final", "target"}          # the first episode, for the report's gallery
     assert {e["target_name"] for e in res["episodes"]} <= set(diffdlo.TARGET_NAMES)   # what the env drew
     assert m.main(["--out", str(tmp_path), "--resume", "--total-steps", "384", "--no-progress"]) == 0

@@ -101,7 +101,11 @@ def test_evaluate_command_writes_results_pictures_and_refuses_to_overwrite(name,
     assert res["method"] == name and res["step"] == TINY[name][3]["total_steps"] and res["target"] == "diagonal"
     assert len(res["episodes"]) == 3 and 0 <= res["success_rate"] <= 1
     assert {e["target_name"] for e in res["episodes"]} == {"diagonal"}
-    assert set(res["episodes"][0]) == {"success", "steps", "final_error", "start_error", "target_name"}
+    assert set(res["episodes"][0]) == {"success", "steps", "final_error", "start_error", "target_name", "errors",
+                                       "worst_errors"}
+    for e in res["episodes"]:                                  # the errors after the reset and after every move
+        assert len(e["errors"]) == len(e["worst_errors"]) == e["steps"] + 1
+        assert e["errors"][-1] == pytest.approx(e["final_error"]) and e["worst_errors"][-1] >= e["final_error"]
     assert (out / "eval_episodes.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "episodes.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
     assert "success rate" in capsys.readouterr().out

@@ -39,6 +39,7 @@ class TaskOptions:
     param_overrides: dict | None = option(None, help="CableParams fields replaced, e.g. {n_nodes: 6, length: 0.15}")
     start: Any = env_field("start")
     success_tol: float | None = env_field("success_tol")
+    success_worst_tol: float | None = env_field("success_worst_tol")
     image_size: int = env_field("image_size")
     success_bonus: float | None = env_field("success_bonus")
     step_penalty: float = env_field("step_penalty")

@@ -19,8 +19,10 @@ from diffdlo.params import CableParams
 from diffdlo.task import target_label
 
 # an episode's record in results.json; start_error (the shape error after reset) identifies the start shape, so a
-# report can check that two methods' episode i are the same episode (planners record it too)
-EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name")
+# report can check that two methods' episode i are the same episode (planners record it too); errors and
+# worst_errors: the shape error and the worst node's error [m] after the reset and after each move (steps + 1 each,
+# as a planner's), from which success at another tolerance is read (benchmarks.compare.stats.success_move)
+EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name", "errors", "worst_errors")
 
 # ====================================================================== evaluation
 @torch.no_grad()
@@ -31,7 +33,9 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
     starts from one rope's ``reset(seed=seed + i)``, as a planner's episode i of ``--seed seed``).
 
     ``policy(obs, deterministic) -> (B, A) actions``. Returns success_rate, mean_reward, mean_length,
-    mean_final_error, episodes [{success, steps, final_error, return, target_name}], final ropes and targets.
+    mean_final_error, episodes [{success, steps, final_error, start_error, return, target_name, errors,
+    worst_errors}] (errors, worst_errors: the env's shape_error and worst_node_error after the reset and after each
+    move), final ropes and targets.
     ``check_stop()``: called before every move (it raises to stop the evaluation, e.g. on a signal).
     """
     env = env if isinstance(env, TrainEnv) else TrainEnv(env)
@@ -42,7 +46,10 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
     while len(episodes) < n_episodes:
         obs = env.reset(seed=seed + wave * b)
         wave += 1
-        start_err = env.core.info()["shape_error"].detach().cpu().double()
+        first = env.core.info()
+        start_err = first["shape_error"].detach().cpu().double()
+        errors = [[float(x)] for x in first["shape_error"].cpu()]
+        worst_errors = [[float(x)] for x in first["worst_node_error"].cpu()]
         start_pos = env.core.get_state(generators=False).pos.detach().cpu()
         active = torch.ones(b, dtype=torch.bool)
         ret = torch.zeros(b, dtype=torch.float64)
@@ -58,6 +65,10 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
             obs = env.to_learner(obs)
             ret += reward.double().cpu() * active
             steps += active.long()
+            mean_now, worst_now = info["shape_error"].cpu().tolist(), info["worst_node_error"].cpu().tolist()
+            for i in active.nonzero().flatten().tolist():
+                errors[i].append(mean_now[i])
+                worst_errors[i].append(worst_now[i])
             done = (term | trunc).cpu() & active
             final_err[done] = info["shape_error"].cpu().float()[done]
             success[done] = info["is_success"].cpu()[done]
@@ -70,7 +81,8 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
             episodes.append({"success": bool(success[i]), "steps": int(steps[i]),
                              "final_error": float(final_err[i]), "start_error": float(start_err[i]),
                              "return": float(ret[i]),
-                             "target_name": state.target_names[i]})
+                             "target_name": state.target_names[i], "errors": errors[i],
+                             "worst_errors": worst_errors[i]})
             ropes.append(final_pos[i].detach().cpu())
             starts.append(start_pos[i])
             targets.append(state.target[i].detach().cpu())
@@ -84,8 +96,9 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
 
 
 def episode_records(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The episodes as results.json keeps them (EPISODE_KEYS)."""
-    return [{k: e[k] for k in EPISODE_KEYS} for e in episodes]
+    """The episodes as results.json keeps them (EPISODE_KEYS; an evaluation saved in a checkpoint before a key was
+    recorded keeps the keys it has)."""
+    return [{k: e[k] for k in EPISODE_KEYS if k in e} for e in episodes]
 
 
 def heldout_envs(task: TaskOptions, run: RunOptions, params: CableParams) -> dict[str, tuple[Any, TrainEnv]]:

@@ -4,9 +4,10 @@
     python -m agents.tools.evaluate runs/sac --target arc_file.npy --episodes 50 --seed 3 --out runs/sac-arc
 
 Writes into --out (default RUN_DIR/evaluate-<target>-s<seed>; never over an earlier evaluation unless --overwrite):
-``results.json`` (success_rate, the episodes' success/steps/final_error/target_name, the checkpoint's ``step``, as
-the learners' results.json), ``eval_episodes.png`` (final shapes against their targets) and ``episodes.gif`` (the
-first episodes one after another, the rope after every move, the grasped node starred; --no-gif skips it).
+``results.json`` (success_rate, the episodes' success/steps/final_error/target_name and their errors after each
+move, mean and worst node, the checkpoint's ``step``, as the learners' results.json), ``eval_episodes.png`` (final
+shapes against their targets) and ``episodes.gif`` (the first episodes one after another, the rope after every
+move, the grasped node starred; --no-gif skips it).
 """
 from __future__ import annotations
 
