@@ -45,10 +45,10 @@ from .records import RESULTS_FILE, collect, read_records, write_records
 from .report import COLUMNS, harness_command, machine_label, task_groups, write_report
 from .runner import machine_info, run_cell, run_cells
 from .settings import argv_changes, changed_cells, comparable_argv, settings_changes
-from .stats import row_stats, t_interval, t_quantile, wilson
+from .stats import row_stats, success_move, t_interval, t_quantile, wilson
 
 __all__ = ["COLUMNS", "GRID_FILE", "RESULTS_FILE", "collect", "read_records", "write_records", "NAMED", "PAYBACK_SLACK", "ROOT", "argv_changes", "build_cells", "cell_dir",
            "changed_cells", "command_line", "comparable_argv", "cost_section", "harness_command", "is_done",
            "load_grid", "machine_info", "main_rows", "method_label", "machine_label", "main", "make_cost_figures", "make_figures", "payback",
-           "row_cost", "row_stats", "run_cell", "run_cells", "settings_changes",
+           "row_cost", "row_stats", "run_cell", "run_cells", "settings_changes", "success_move",
            "t_interval", "t_quantile", "task_groups", "wilson", "write_report"]

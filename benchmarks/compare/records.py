@@ -4,8 +4,10 @@ run folders.
 
 A record holds the cell (method, variant, target, seed), the command that ran it and its settings (the argv without
 --out, as settings.comparable_argv), where it ran, its costs (env steps, simulator evaluations, wall seconds), each
-evaluated episode (success, moves, final and start error, target; a planner's per-move errors), the held-out
-evaluations of a learner, the first episode's shapes (the galleries) and a learner's evaluation curve.
+evaluated episode (success, moves, final and start error, target; the mean and the worst node's error after the
+reset and after each move, "errors" and "worst_errors", where the cell recorded them: a planner's "errors" always,
+the rest since they are recorded; a record without them reads as before), the held-out evaluations of a learner,
+the first episode's shapes (the galleries) and a learner's evaluation curve.
 
     python -m benchmarks.compare --collect --out runs/compare     # add the finished cells of runs/compare
     python -m benchmarks.compare --report-only                    # rebuild docs/RESULTS.md from the records
@@ -13,6 +15,7 @@ evaluations of a learner, the first episode's shapes (the galleries) and a learn
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -30,9 +33,24 @@ def _episode(e: dict[str, Any]) -> dict[str, Any]:
     for k in ("final_error", "start_error"):
         if k in out:
             out[k] = round(float(out[k]), 7)           # 0.1 µm: the pairing check compares to 1e-6 m
-    if "errors" in e:                                  # a planner's error after each move (figures, moves to 2 cm)
-        out["errors"] = [round(float(x), 5) for x in e["errors"]]
+    for k in ("errors", "worst_errors"):               # the errors after each move (figures, moves to 2 cm,
+        if k in e:                                     # success at another tolerance: stats.success_move)
+            out[k] = [floor_error(x) for x in e[k]]
     return out
+
+
+def floor_error(x: float) -> float:
+    """An error [m] as a record keeps it after each move: rounded DOWN to 10 µm (5 decimals), so that x < tol reads
+    the same before and after for every tolerance that is a multiple of 10 µm (2 cm, 1 cm, 5 mm, 2 mm): an episode
+    that ends just under its tolerance is still under it in its record. (Records collected before worst_errors were
+    kept rounded to the nearest 10 µm, which puts about 1 in 500 such last moves on the tolerance itself.)"""
+    x = float(x)
+    k = math.floor(x * 1e5)
+    while (k + 1) / 1e5 <= x:        # the largest k / 1e5 <= x, whatever the product's rounding
+        k += 1
+    while k / 1e5 > x:
+        k -= 1
+    return k / 1e5
 
 
 def _curve(d: Path) -> list[list[float]]:

@@ -1,15 +1,19 @@
-"""Confidence intervals (95 %, scipy.stats) and the statistics of one report row.
+"""Confidence intervals (95 %, scipy.stats), the statistics of one report row, and an episode's success at another
+tolerance.
 
   * t-interval over seeds: mean of the per-seed values +- t_{0.975, n-1} * sd / sqrt(n) (sample sd, ddof 1);
     success rates clipped to [0, 1]; undefined for one seed;
-  * Wilson score interval over all episodes of all seeds pooled (ignores between-seed variance).
+  * Wilson score interval over all episodes of all seeds pooled (ignores between-seed variance);
+  * ``success_move``: the first move at which an episode's recorded errors pass a (mean, worst node) tolerance.
 """
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
+
+from diffdlo.rewards import within_tolerance
 
 
 def t_quantile(p: float, df: float) -> float:
@@ -67,3 +71,32 @@ def row_stats(runs: list[dict[str, Any]]) -> dict[str, Any]:
                          if all("sim_backward" in r for r in runs) else None),
         "s_per_move": float(np.mean([r["plan_s_per_step"] for r in runs])) if planner else None,
     }
+
+
+def success_move(errors: Sequence[float], worst_errors: Sequence[float] | None, tol: float,
+                 worst_tol: float | None = None) -> int | None:
+    """The move at which an episode would have succeeded at tolerance (``tol``, ``worst_tol``), from its recorded
+    errors after the reset and after each move (an episode record's "errors" and "worst_errors", both steps + 1
+    long): the first k with errors[k] < tol and, when ``worst_tol`` is given, worst_errors[k] < worst_tol (the env's
+    test, ``diffdlo.rewards.within_tolerance``); 0 for a start already within it; None where no recorded move is.
+
+    The answer is read from the moves the episode made: it ended at its own success (at the tolerance it ran with)
+    or after max_steps, so at a looser pair it is exact, and at a tighter one an episode that succeeded at its own
+    tolerance may have got there had it gone on (None here). A record's errors are rounded down to 10 µm
+    (``records.floor_error``), which keeps the test exact at tolerances that are multiples of 10 µm; records
+    collected before worst errors were kept rounded to the nearest 10 µm, so there an error within 5 µm of a
+    tolerance may read on the wrong side (7 of the 3100 planner episodes of the committed records at 1 cm).
+    Raises ValueError where ``worst_tol`` is given and the episode has no worst errors (a record made before they
+    were kept), or the lists differ in length."""
+    if worst_tol is not None:
+        if worst_errors is None:
+            raise ValueError(f"worst_tol={worst_tol!r} needs the episode's worst node errors; this episode has none "
+                             "(recorded before they were kept)")
+        if len(worst_errors) != len(errors):
+            raise ValueError(f"an episode's errors and worst_errors must have one entry per move each, got "
+                             f"{len(errors)} and {len(worst_errors)}")
+    for k, mean in enumerate(errors):
+        worst = None if worst_tol is None else worst_errors[k]
+        if within_tolerance(mean, worst, tol, worst_tol):
+            return k
+    return None
