@@ -101,8 +101,8 @@ def is_success(pos: torch.Tensor, target: torch.Tensor, tol: float = 0.01,
     """(B,) bool: shape_error < tol (default 1 cm, 2% of the rope length, params/cable.yaml's success_tol) and, when
     ``worst_tol`` is given, worst_node_error < worst_tol (``within_tolerance``). The env reads its tolerances from
     its options (``EnvOptions.success_tol``, ``success_worst_tol``), not from this default."""
-    worst = worst_node_error(pos, target) if worst_tol is not None else None
-    return within_tolerance(shape_error(pos, target), worst, tol, worst_tol)
+    errors = node_errors(pos, target)
+    return within_tolerance(errors.mean(-1), errors.amax(-1), tol, worst_tol)
 
 
 REWARDS = ("position_orientation", "abs_diff", "delta_gain", "shape_gain")

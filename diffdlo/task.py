@@ -26,7 +26,7 @@ from gymnasium import spaces
 
 from . import image as rimage
 from .params import CableParams
-from .rewards import node_errors, orientation_error, reward as move_reward, within_tolerance
+from .rewards import is_success, node_errors, orientation_error, reward as move_reward, within_tolerance
 from .shapes import CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape
 
 
@@ -162,14 +162,6 @@ def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torc
     truncated = ~terminated & ((steps >= rules.max_steps) | outside)
     r = torch.where(success, torch.full_like(r, rules.success_bonus), r - rules.step_penalty)
     return torch.where(failed, torch.full_like(r, -rules.exit_penalty), r), terminated, truncated, success
-
-
-def is_success(pos: torch.Tensor, target: torch.Tensor, success_tol: float,
-               success_worst_tol: float | None = None) -> torch.Tensor:
-    """(B,) the task's success test of ropes ``pos`` (B, N, 2): shape_error < success_tol and, when
-    ``success_worst_tol`` is not None, worst_node_error < success_worst_tol (``diffdlo.rewards.within_tolerance``)."""
-    errors = node_errors(pos, target)
-    return within_tolerance(errors.mean(-1), errors.amax(-1), success_tol, success_worst_tol)
 
 
 def task_metrics(pos: torch.Tensor, target: torch.Tensor, success_tol: float,
