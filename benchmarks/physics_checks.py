@@ -391,10 +391,10 @@ def gradient_horizon(p: CableParams, horizon: int, directions: int = 16, step: f
 
 def substep_boundary_jump(p: CableParams, length: float = 0.03, gap: float = 1e-11) -> dict:
     """How far the settled rope moves [m] when a drag of ``length`` (a whole number of max_speed dt steps) grows by
-    2 ``gap``: the path then takes one substep more. control.reference makes the release velocity continuous
-    within a substep count, not across one: just short of the boundary the node is released at max_speed, just past
-    it after a last substep of almost nothing, so at rest (and the settle window, counted from release, ends a
-    substep later)."""
+    2 ``gap``: the path then takes one substep more. Before the release within the last substep
+    (control.last_substep_fraction) this was 36 um: just short of the boundary the node was released at max_speed,
+    just past it after a last substep of almost nothing, so at rest, and the settle cap, counted from the release,
+    ended a substep later."""
     sim = Simulator(p, dtype=F64)
     start = sim.random_shape(1, generator=torch.Generator().manual_seed(0)).expand(2, -1, -1).contiguous()
     d = torch.tensor([[length - gap, 0.0], [length + gap, 0.0]], dtype=F64)
@@ -524,8 +524,9 @@ def table(res: dict) -> str:
         rows.append(f"| {gr['horizon']}, FD step 1e-5 m | | | all directions: max {gr['rel_error_all_max']:.1e} | "
                     f"{gr['crossed']} of {gr['directions']} | |")
     jump = res["substep_boundary_jump"]
-    rows += ["", f"Departure: a drag crossing a whole number of substeps ({jump['drag_substeps']}) by "
-             f"{jump['gap']:.0e} m moves the settled rope by {jump['jump'] * 1e6:.1f} um ({cmd})."]
+    rows += ["", f"Continuity: a drag crossing a whole number of substeps ({jump['drag_substeps']}) by "
+             f"{jump['gap']:.0e} m moves the settled rope by {jump['jump']:.1e} m ({cmd}; 3.6e-05 m before the "
+             f"release within the last substep)."]
     return "\n".join(rows)
 
 

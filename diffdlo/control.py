@@ -53,6 +53,23 @@ def reference(start: torch.Tensor, delta: torch.Tensor, speed: torch.Tensor, k: 
     return position, velocity
 
 
+def last_substep_fraction(distance: torch.Tensor, speed: torch.Tensor, path_steps: torch.Tensor,
+                          p: CableParams) -> torch.Tensor:
+    """(B,) share phi in (0, 1] of the drag's last substep that the path still fills (1 for a zero drag, for the
+    PID and for a drag of a whole number of substeps); differentiable in ``distance``.
+
+    The kinematic drag uses it twice so that a move is continuous in the drag also where the path's length crosses
+    a whole number of substeps (where path_substeps steps up by one): on the last drag substep the grasped node goes
+    only the share phi of the way from where the free dynamics would take it to the reference (a release within the
+    substep, to first order), and a rope stopped by the settle cap returns its state the share phi of the way from
+    its last-but-one substep to its last (the cap then counts from the release's true time, path length / speed).
+    """
+    if p.controller != "kinematic":
+        return torch.ones_like(distance)
+    raw = distance / (speed * p.dt) - (path_steps - 1).to(distance.dtype)
+    return torch.where(path_steps > 0, raw.clamp(0.0, 1.0), torch.ones_like(distance))
+
+
 def hold_substeps(p: CableParams) -> int:
     """Substeps the PID holds the goal after the path ends (0 for the kinematic drag)."""
     return int(math.ceil(p.ff_len / p.dt - 1e-9)) if p.controller == "pid" else 0

@@ -297,9 +297,12 @@ class Simulator:
         finished_at = torch.zeros(batch, dtype=torch.int64)
         keep = (lambda x: x) if differentiable_frames else (lambda x: x.detach().clone())
         frames = [keep(pos)] if record_every > 0 else None
+        phi = control.last_substep_fraction(delta.norm(dim=-1), speed, path_steps, p)
+        last_share = phi.view(batch, 1, 1)
         k = 0
         while not bool(done.all()):
             k += 1
+            prev_pos, prev_vel = pos, vel
             dragging = (k <= grasp_steps).view(batch, 1, 1)
             ref_pos, ref_vel = control.reference(start, delta, speed, k, p.dt)
             external = None
@@ -313,14 +316,15 @@ class Simulator:
             new_pos, new_vel = self.substep(pos, vel, external, physics)
             if p.controller == "kinematic":
                 on_path = grasped & dragging
-                new_pos = torch.where(on_path, ref_pos.unsqueeze(1), new_pos)
-                new_vel = torch.where(on_path, ref_vel.unsqueeze(1), new_vel)
+                ref_pos, ref_vel = ref_pos.unsqueeze(1), ref_vel.unsqueeze(1)
+                blend = on_path & ((k == path_steps) & (phi < 1)).view(batch, 1, 1)
+                new_pos = torch.where(blend, new_pos + last_share * (ref_pos - new_pos),
+                                      torch.where(on_path, ref_pos, new_pos))
+                new_vel = torch.where(blend, new_vel + last_share * (ref_vel - new_vel),
+                                      torch.where(on_path, ref_vel, new_vel))
             frozen = done_dev.view(batch, 1, 1)
             pos = torch.where(frozen, pos, new_pos)
             vel = torch.where(frozen, vel, new_vel)
-            if frames is not None and k % record_every == 0:
-                frames.append(keep(pos))
-
             since_release = k - grasp_steps_cpu
             check = ~done & (since_release > 0) & (since_release % p.settle_check_every == 0)
             capped = ~done & (since_release >= p.settle_max_substeps)
@@ -329,10 +333,16 @@ class Simulator:
                 at_rest = max_speed(vel.detach()).cpu() < p.settle_threshold
                 now_settled = check & at_rest
                 settled |= now_settled
+                stopped_by_cap = (capped & ~now_settled).to(pos.device).view(batch, 1, 1) & (last_share < 1)
+                if bool(stopped_by_cap.any()):
+                    pos = torch.where(stopped_by_cap, prev_pos + last_share * (pos - prev_pos), pos)
+                    vel = torch.where(stopped_by_cap, prev_vel + last_share * (vel - prev_vel), vel)
                 newly_done = now_settled | capped
                 finished_at[newly_done] = k
                 done = done | newly_done                         # out of place: `where` saved the old mask
                 done_dev = done.to(pos.device, copy=True)
+            if frames is not None and k % record_every == 0:    # after the settle cap's release share
+                frames.append(keep(pos))
 
         self._check_finite(pos, f"after a move (node={node.tolist()}, delta={delta.tolist()})")
         return pos, vel, grasp_steps_cpu, finished_at, settled, frames

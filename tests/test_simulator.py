@@ -22,11 +22,25 @@ def test_kinematic_drag_puts_node_on_goal_then_releases(sim64, params):
     new, info = sim64.move(pos, torch.tensor([7]), delta, return_info=True, record_every=1)
     n = int(info.drag_substeps[0])
     assert n == 584                              # ceil(|delta| / (0.1 m/s * 1 ms))
-    torch.testing.assert_close(info.frames[n, 0, 7], pos[0, 7] + delta[0], rtol=0, atol=1e-12)
+    steps = float(delta.norm()) / 1e-4           # 583.095: the path fills 0.095 of the last substep
     halfway = info.frames[n // 2, 0, 7]
-    torch.testing.assert_close(halfway, pos[0, 7] + delta[0] * (n // 2) / (0.0583095 / 0.0001), rtol=0, atol=1e-6)
+    torch.testing.assert_close(halfway, pos[0, 7] + delta[0] * (n // 2) / steps, rtol=0, atol=1e-12)
+    torch.testing.assert_close(info.frames[n - 1, 0, 7], pos[0, 7] + delta[0] * (n - 1) / steps, rtol=0, atol=1e-12)
+    # released within the last substep: the node goes the share phi (0.095) of the way from where its free step
+    # (the path's velocity plus the rope's pull, 0.26 mm here) would take it to the goal
+    off = float((info.frames[n, 0, 7] - (pos[0, 7] + delta[0])).norm())
+    assert 1e-5 < off < 1e-3
     assert info.settle_substeps[0] > 0 and info.substeps[0] == n + info.settle_substeps[0]
     assert not torch.equal(new[0, 7], info.frames[n, 0, 7]), "after release the node is free again"
+
+
+def test_a_drag_of_a_whole_number_of_substeps_ends_on_the_goal(sim64, params):
+    pos = crumpled(1, params, sigma=0.3)
+    delta = torch.tensor([[0.03, -0.04]], dtype=torch.float64)        # 0.05 m: 500 substeps at 0.1 m/s, 1 ms
+    new, info = sim64.move(pos, torch.tensor([7]), delta, return_info=True, record_every=1)
+    n = int(info.drag_substeps[0])
+    assert n == 500
+    torch.testing.assert_close(info.frames[n, 0, 7], pos[0, 7] + delta[0], rtol=0, atol=1e-12)
 
 
 def test_long_drags_are_shortened_to_max_disp(sim64, params):

@@ -156,17 +156,18 @@ def test_adjoint_memory_is_checkpointed_in_chunks(params):
     longest = p.max_drag_steps + p.settle_max_substeps + 1
     out_pos, out_vel, steps, _, _, ckpt, _ = triton_kernel.forward(*args, save=True)
     chunk = triton_kernel.chunk_substeps(longest)
-    assert ckpt.shape == (3, longest // chunk + 1, 4, p.n_nodes)
+    assert ckpt.shape == (3, longest // chunk + 2, 4, p.n_nodes)    # + the settle cap's release share
     assert torch.equal(ckpt[:, 0, 0], pos[..., 0]) and torch.equal(ckpt[:, 0, 1], pos[..., 1])
     # the checkpoint after substep `chunk` is the state a free evolution of `chunk` substeps reaches
     free = triton_kernel.forward(*args, fixed_steps=chunk)
     assert torch.equal(ckpt[:, 1, 0], free[0][..., 0]) and torch.equal(ckpt[:, 1, 3], free[1][..., 1])
 
 
-@pytest.mark.parametrize("differentiable", [False, True])
-def test_frames_match_eager(params, differentiable):
+@pytest.mark.parametrize("differentiable,every", [(False, 7), (True, 7), (True, 1)])
+def test_frames_match_eager(params, differentiable, every):
     """Frames recorded in the kernel, per rope up to its own stop, equal the eager loop's; a loss on differentiable
-    frames has the eager gradient (the adjoint adds each frame's gradient at its substep)."""
+    frames has the eager gradient (the adjoint adds each frame's gradient at its substep). Recording every substep,
+    a rope stopped by the settle cap has a frame on its last substep, which is its returned (release-share) state."""
     p = short(params, n_nodes=6, length=0.15)
     ref, tri = sims(p, torch.float64)
     assert tri.engine == "triton" and "triton" not in tri.why_not
@@ -175,18 +176,19 @@ def test_frames_match_eager(params, differentiable):
                           torch.zeros(p.n_nodes, dtype=torch.float64)], -1).to(DEVICE)     # at rest
     node = torch.tensor([0, 5, 2], device=DEVICE)
     delta = torch.tensor([[0.0213, 0.0041], [0.0, 0.0172], [0.0, 0.0]], dtype=torch.float64, device=DEVICE)
-    weights = torch.randn(40, 3, p.n_nodes, 2, dtype=torch.float64,
+    weights = torch.randn(200, 3, p.n_nodes, 2, dtype=torch.float64,
                           generator=torch.Generator().manual_seed(4)).to(DEVICE)
     outputs = []
     for sim in (ref, tri):
         x = pos.clone().requires_grad_(True)
         d = delta.clone().requires_grad_(True)
-        out, info = sim.move(x, node, d, return_info=True, record_every=7, differentiable_frames=differentiable)
+        out, info = sim.move(x, node, d, return_info=True, record_every=every, differentiable_frames=differentiable)
         loss = (info.frames * weights[:len(info.frames)]).sum() + (out ** 2).sum()
         outputs.append((info, torch.autograd.grad(loss, (x, d))))
     (ia, ga), (ib, gb) = outputs
     steps = ib.substeps.tolist()
     assert steps[2] == p.settle_check_every and steps[0] > steps[2], steps     # ropes stop at different substeps
+    assert every != 1 or not bool(ib.settled[0]), "rope 0 is to be stopped by the settle cap"
     assert ia.frames.shape == ib.frames.shape and (ia.frames - ib.frames).abs().max().item() < 1e-12
     assert ib.frames.requires_grad == differentiable
     for a, b in zip(ga, gb):
@@ -234,3 +236,32 @@ def test_every_kernel_compiles_for_a_gpu_without_one():
     for row in rows:
         registers = row[-2]
         assert registers.isdigit() and 0 < int(registers) <= 255, row
+
+
+@pytest.mark.parametrize("max_settle", [60, 0])     # 0: the cap stops the rope on its release substep
+def test_gradient_through_the_returned_state_equals_eager(params, max_settle):
+    """A loss on the returned positions and velocities (which Simulator.move does not return): the adjoint of the
+    release within the drag's last substep and of the settle cap's share equals autograd of the eager loop."""
+    p = short(params, n_nodes=6, length=0.15, settle_max_substeps=max_settle)
+    ref, tri = sims(p, torch.float64)
+    pos = crumpled(5, p, sigma=0.6, seed=8).to(DEVICE)
+    gen = torch.Generator().manual_seed(8)
+    node = torch.randint(0, p.n_nodes, (5,), generator=gen).to(DEVICE)
+    delta = ((torch.rand(5, 2, generator=gen, dtype=torch.float64) * 2 - 1) * 0.03).to(DEVICE)
+    weights = torch.randn(2, *pos.shape, dtype=torch.float64, generator=gen).to(DEVICE)
+    clipped = diffdlo.control.clip_drag(delta, p.max_disp)
+    steps = diffdlo.control.path_substeps(clipped.norm(dim=-1), p)
+    grads, capped = [], None
+    for sim in (ref, tri):
+        x, v, d = (t.clone().requires_grad_(True) for t in (pos, 0.01 * weights[1], clipped))
+        if sim is ref:
+            speed = diffdlo.control.drag_speed(d.norm(dim=-1), p)
+            out_x, out_v, _, _, settled, _ = sim._move_eager(x, v, node, d, speed, steps)
+            capped = ~settled
+        else:
+            out_x, out_v, *_ = sim._triton_apply(x, v, node, d, steps, -1, None)
+        loss = (out_x * weights[0]).sum() + (out_v * weights[1]).sum()
+        grads.append(torch.autograd.grad(loss, (x, v, d)))
+    assert int(capped.sum()) >= 3                                  # ropes stopped by the cap: their share applies
+    for name, a, b in zip(("pos", "vel", "delta"), *grads):
+        assert (a - b).abs().max().item() < 1e-9 * a.abs().max().item(), name

@@ -20,7 +20,7 @@ import torch
 from diffdlo.backends import triton_kernel
 
 POINTERS_INT64 = {"node_ptr", "ngrasp_ptr", "steps_ptr"}
-POINTERS_INT8 = {"settled_ptr", "diverged_ptr"}
+POINTERS_INT8 = {"settled_ptr", "diverged_ptr", "stopped_ptr"}
 
 
 def signature(kernel, dtype: torch.dtype) -> dict[str, str]:

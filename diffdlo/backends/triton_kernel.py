@@ -26,6 +26,12 @@ The kernels read l0, h and the thresholds from a tensor in the state's dtype: Tr
 float32, and ``tl.where`` of two float literals is float32 too, which would round a float64 move (the forward then
 matched the eager path to 2e-11 m; now to rounding, 1e-17).
 
+The release within the drag's last substep (``control.last_substep_fraction``, phi per rope), as the eager path and
+the C++ kernel: on substep n_grasp the node goes phi of the way from its free step to the path, and a rope stopped
+by the settle cap returns its state phi of the way from substep K - 1 to K (the forward keeps x_K - x_{K-1} in one
+more checkpoint slot for the adjoint's d / d phi; the adjoint scales substep K's adjoint by phi and passes 1 - phi
+of the output's gradient straight to x_{K-1}).
+
 Frames (``record_every`` > 0) are recorded per rope up to its own stop, as the C++ kernel's, and their gradients go
 in at their substeps in the adjoint. Not supported here (the simulator then uses the eager torch path,
 ``Simulator.why_not["triton"]`` says why): the PID controller.
@@ -127,10 +133,12 @@ if triton is not None:
 
     @triton.jit
     def _substep(x, y, vx, vy, k, live, ks, kb, hm, damp, l0, h, jj, link, inner, nxt, prv,
-                 on_path, sx, sy, dx, dy, sp, safe):
+                 on_path, sx, sy, dx, dy, sp, safe, blend, phi):
         """Substep k of a move for the ropes and nodes in ``live`` (the others keep their state): internal forces,
-        semi-implicit Euler with implicit damping, then the grasped node (``on_path``) put on its reference path.
-        Mirrors diffdlo/forces.py, integrate.py and control.reference (and cable.cpp's substep)."""
+        semi-implicit Euler with implicit damping, then the grasped node (``on_path``) put on its reference path,
+        or, on the ropes in ``blend`` (their last drag substep, phi < 1), the share ``phi`` of the way from its free
+        step to the path (control.last_substep_fraction). Mirrors diffdlo/forces.py, integrate.py and
+        control.reference (and cable.cpp's substep). Also returns the grasped node's free x, y, vx, vy per rope."""
         ex, ey, len2, beta = _links(x, y, link, inner, nxt, prv)
         beta_end = tl.where(link, tl.gather(beta, nxt, axis=1), 0.0)                     # angle at node j + 1
         a = ks * (1.0 - l0 / tl.sqrt(len2))
@@ -147,11 +155,33 @@ if triton is not None:
         frac_prev = tl.minimum((k - 1) * h * sp / safe, 1.0)
         rvel = (frac - frac_prev) / h
         zero2 = x * 0.0
-        nx = tl.where(on_path, (sx + frac * dx)[:, None] + zero2, nx)
-        ny = tl.where(on_path, (sy + frac * dy)[:, None] + zero2, ny)
-        nvx = tl.where(on_path, (rvel * dx)[:, None] + zero2, nvx)
-        nvy = tl.where(on_path, (rvel * dy)[:, None] + zero2, nvy)
-        return (tl.where(live, nx, x), tl.where(live, ny, y), tl.where(live, nvx, vx), tl.where(live, nvy, vy))
+        free_x = tl.sum(tl.where(on_path, nx, 0.0), axis=1)
+        free_y = tl.sum(tl.where(on_path, ny, 0.0), axis=1)
+        free_vx = tl.sum(tl.where(on_path, nvx, 0.0), axis=1)
+        free_vy = tl.sum(tl.where(on_path, nvy, 0.0), axis=1)
+        share = blend[:, None] & on_path
+        w = phi[:, None]
+        rx = (sx + frac * dx)[:, None] + zero2
+        ry = (sy + frac * dy)[:, None] + zero2
+        rvx = (rvel * dx)[:, None] + zero2
+        rvy = (rvel * dy)[:, None] + zero2
+        nx = tl.where(share, nx + w * (rx - nx), tl.where(on_path, rx, nx))
+        ny = tl.where(share, ny + w * (ry - ny), tl.where(on_path, ry, ny))
+        nvx = tl.where(share, nvx + w * (rvx - nvx), tl.where(on_path, rvx, nvx))
+        nvy = tl.where(share, nvy + w * (rvy - nvy), tl.where(on_path, rvy, nvy))
+        return (tl.where(live, nx, x), tl.where(live, ny, y), tl.where(live, nvx, vx), tl.where(live, nvy, vy),
+                free_x, free_y, free_vx, free_vy)
+
+    @triton.jit
+    def _share(dx, dy, sp, safe, ng, h, vmax):
+        """Per rope: phi, the share of the drag's last substep the path still fills (control.last_substep_fraction;
+        1 without a drag), and d phi / d (dx, dy) (nonzero only for a slow drag, s = vmax, with 0 < phi < 1)."""
+        raw = safe / (sp * h) - (ng - 1).to(safe.dtype)
+        inside = (ng > 0) & (raw < 1.0)
+        phi = tl.where(inside, tl.minimum(tl.maximum(raw, 0.0), 1.0), 1.0 + safe * 0.0)
+        moving = inside & (raw > 0.0) & (~(sp > vmax))
+        scale = tl.where(moving, 1.0 / (safe * sp * h), 0.0)
+        return phi, dx * scale, dy * scale
 
     @triton.jit
     def _hvp(x, y, ux, uy, ks, kb, l0, jj, link, inner, nxt, prv):
@@ -250,6 +280,7 @@ if triton is not None:
         grasped, ng, dx, dy, sp, safe = _drag_of(node_ptr, ngrasp_ptr, delta_ptr, speed_ptr, rope, rope64, rmask, jj)
         sx = tl.sum(tl.where(grasped, x, 0.0), axis=1)
         sy = tl.sum(tl.where(grasped, y, 0.0), axis=1)
+        phi, _, _ = _share(dx, dy, sp, safe, ng, h, tl.load(scalar_ptr + 4))
         ckpt = rope64[:, None] * (slots * 4 * N) + jj              # checkpoint slot 0 of rope r, x of node j
         if SAVE:
             tl.store(ckpt_ptr + ckpt, x, mask=nmask)
@@ -270,8 +301,13 @@ if triton is not None:
         while running:
             k += 1
             live = active[:, None] & nmask
-            x, y, vx, vy = _substep(x, y, vx, vy, k, live, ks, kb, hm, damp, l0, h, jj, link, inner, nxt, prv,
-                                    grasped & (k <= ng)[:, None], sx, sy, dx, dy, sp, safe)
+            px = x                                                 # a rope stopped by the settle cap returns its
+            py = y                                                 # state phi of the way from these to the next
+            pvx = vx
+            pvy = vy
+            x, y, vx, vy, _, _, _, _ = _substep(x, y, vx, vy, k, live, ks, kb, hm, damp, l0, h, jj, link, inner, nxt,
+                                                prv, grasped & (k <= ng)[:, None], sx, sy, dx, dy, sp, safe,
+                                                (k == ng) & (phi < 1.0), phi)
             if SAVE:
                 if k % CHUNK == 0:                                 # the state after substep k, for the adjoint
                     at = ckpt + (k // CHUNK) * (4 * N)
@@ -279,11 +315,6 @@ if triton is not None:
                     tl.store(ckpt_ptr + at + N, y, mask=live)
                     tl.store(ckpt_ptr + at + 2 * N, vx, mask=live)
                     tl.store(ckpt_ptr + at + 3 * N, vy, mask=live)
-            if RECORD:
-                if k % every == 0:                                 # frames up to each rope's own stop
-                    at = frame + (k // every) * (2 * N)
-                    tl.store(frames_ptr + at, x, mask=live)
-                    tl.store(frames_ptr + at + 1, y, mask=live)
             # ---- stop rules
             far = (~(tl.abs(x) <= radius)) | (~(tl.abs(y) <= radius))
             bad = tl.max(tl.where(nmask & far, 1, 0), axis=1) > 0
@@ -299,6 +330,22 @@ if triton is not None:
                 div_now = (check | capped) & bad
                 set_now = check & (~bad) & (tl.sqrt(v2) < threshold)
                 stop = div_now | set_now | capped
+                lerp = (active & capped & (~div_now) & (~set_now) & (phi < 1.0))[:, None] & nmask
+                if SAVE:                                           # x_K - x_{K-1}: the adjoint's d x_out / d phi
+                    at = ckpt + (slots - 1) * (4 * N)
+                    tl.store(ckpt_ptr + at, x - px, mask=lerp)
+                    tl.store(ckpt_ptr + at + N, y - py, mask=lerp)
+                    tl.store(ckpt_ptr + at + 2 * N, vx - pvx, mask=lerp)
+                    tl.store(ckpt_ptr + at + 3 * N, vy - pvy, mask=lerp)
+                x = tl.where(lerp, px + phi[:, None] * (x - px), x)
+                y = tl.where(lerp, py + phi[:, None] * (y - py), y)
+                vx = tl.where(lerp, pvx + phi[:, None] * (vx - pvx), vx)
+                vy = tl.where(lerp, pvy + phi[:, None] * (vy - pvy), vy)
+            if RECORD:
+                if k % every == 0:                                 # frames up to each rope's own stop
+                    at = frame + (k // every) * (2 * N)
+                    tl.store(frames_ptr + at, x, mask=live)
+                    tl.store(frames_ptr + at + 1, y, mask=live)
             newly = active & stop
             steps = tl.where(newly, k, steps)
             settled = settled | (newly & set_now)
@@ -315,7 +362,7 @@ if triton is not None:
 
     @triton.jit
     def _adjoint_kernel(pos_ptr, node_ptr, delta_ptr, speed_ptr, ngrasp_ptr, phys_ptr, scalar_ptr, steps_ptr,
-                        ckpt_ptr, scratch_ptr, gpos_ptr, gvel_ptr, gframes_ptr, out_gpos_ptr, out_gvel_ptr,
+                        stopped_ptr, ckpt_ptr, scratch_ptr, gpos_ptr, gvel_ptr, gframes_ptr, out_gpos_ptr, out_gvel_ptr,
                         out_gdelta_ptr, out_gphys_ptr, B, slots, every, frame_cap,
                         N: tl.constexpr, N_PAD: tl.constexpr, BLOCK: tl.constexpr, CHUNK: tl.constexpr,
                         PHYS: tl.constexpr, NC: tl.constexpr, FRAMES: tl.constexpr):
@@ -326,7 +373,13 @@ if triton is not None:
         g_v = damp u; while the node is on its path, the adjoints of its overwritten position and velocity go to the
         drag and the grasp start instead. With PHYS, also the gradients w.r.t. k_s, k_b, 1/m and damp. NC: scratch
         planes per substep (x, y; and vx, vy with PHYS). FRAMES: the incoming gradients of the frames recorded every
-        ``every`` substeps are added to g_x at their substeps."""
+        ``every`` substeps are added to g_x at their substeps.
+
+        The release within the last drag substep (control.last_substep_fraction, phi per rope): on substep n_grasp
+        the node is free + phi (reference - free), so phi of its adjoint goes to the path and 1 - phi stays on the
+        node; a rope stopped by the settle cap (``stopped_ptr`` 0: neither settled nor diverged) returned
+        x_{K-1} + phi (x_K - x_{K-1}), so the sweep starts from phi times the output's gradient and adds 1 - phi of
+        it after substep K. Both add d phi / d drag times the gradient of phi to the drag's."""
         pid = tl.program_id(0)
         rope = pid * BLOCK + tl.arange(0, BLOCK)
         rmask = rope < B
@@ -357,10 +410,25 @@ if triton is not None:
         sx = tl.sum(tl.where(grasped, x0, 0.0), axis=1)
         sy = tl.sum(tl.where(grasped, y0, 0.0), axis=1)
         K = tl.load(steps_ptr + rope, mask=rmask, other=0).to(tl.int32)
+        phi, _, _ = _share(dx, dy, sp, safe, ng, h, vmax)
+        lerped = rmask & (tl.load(stopped_ptr + rope, mask=rmask, other=1) == 0) & (phi < 1.0)
+        frame = rope64[:, None] * (frame_cap * 2 * N) + 2 * jj
         gx = tl.load(gpos_ptr + offs, mask=nmask, other=0.0)
         gy = tl.load(gpos_ptr + offs + 1, mask=nmask, other=0.0)
         gvx = tl.load(gvel_ptr + offs, mask=nmask, other=0.0)
         gvy = tl.load(gvel_ptr + offs + 1, mask=nmask, other=0.0)
+        ckpt = rope64[:, None] * (slots * 4 * N) + jj
+        lerped2 = lerped[:, None] & nmask
+        if FRAMES:                                                 # a lerped rope's frame K is its x_out
+            last = lerped2 & ((K % every) == 0)[:, None]
+            at = frame + (K // every)[:, None].to(tl.int64) * (2 * N)
+            gx += tl.load(gframes_ptr + at, mask=last, other=0.0)
+            gy += tl.load(gframes_ptr + at + 1, mask=last, other=0.0)
+        at = ckpt + (slots - 1) * (4 * N)                          # the forward's x_K - x_{K-1}
+        gphi = tl.sum(tl.where(lerped2, gx * tl.load(ckpt_ptr + at, mask=lerped2, other=0.0)
+                               + gy * tl.load(ckpt_ptr + at + N, mask=lerped2, other=0.0)
+                               + gvx * tl.load(ckpt_ptr + at + 2 * N, mask=lerped2, other=0.0)
+                               + gvy * tl.load(ckpt_ptr + at + 3 * N, mask=lerped2, other=0.0), 0.0), axis=1)
         zero = sx * 0.0
         gdx = zero
         gdy = zero
@@ -369,10 +437,9 @@ if triton is not None:
         acc_s = zero
         acc_b = zero
         acc_w = zero
-        ckpt = rope64[:, None] * (slots * 4 * N) + jj
         plane = tl.arange(0, BLOCK)[:, None] * N_PAD + jj          # this program's [R, N_PAD] tile of one plane
-        scratch = scratch_ptr + pid.to(tl.int64) * (CHUNK * NC * BLOCK * N_PAD)
-        frame = rope64[:, None] * (frame_cap * 2 * N) + 2 * jj
+        scratch = scratch_ptr + pid.to(tl.int64) * (CHUNK * NC * BLOCK * N_PAD + 4 * BLOCK)
+        free = scratch + CHUNK * NC * BLOCK * N_PAD + tl.arange(0, BLOCK)   # the node's free state on substep ng
         kmax = tl.max(K, axis=0)
         chunks = (kmax + CHUNK - 1) // CHUNK
         for ci in range(0, chunks):
@@ -394,17 +461,23 @@ if triton is not None:
                     tl.store(base + 2 * BLOCK * N_PAD + plane, vx)
                     tl.store(base + 3 * BLOCK * N_PAD + plane, vy)
                 live = want & (k <= K)[:, None]
-                x, y, vx, vy = _substep(x, y, vx, vy, k, live, ks, kb, hm, damp, l0, h, jj, link, inner, nxt, prv,
-                                        grasped & (k <= ng)[:, None], sx, sy, dx, dy, sp, safe)
+                x, y, vx, vy, nfx, nfy, nfvx, nfvy = _substep(
+                    x, y, vx, vy, k, live, ks, kb, hm, damp, l0, h, jj, link, inner, nxt, prv,
+                    grasped & (k <= ng)[:, None], sx, sy, dx, dy, sp, safe, (k == ng) & (phi < 1.0), phi)
+                at_release = rmask & (k == ng) & (phi < 1.0)
+                tl.store(free, nfx, mask=at_release)
+                tl.store(free + BLOCK, nfy, mask=at_release)
+                tl.store(free + 2 * BLOCK, nfvx, mask=at_release)
+                tl.store(free + 3 * BLOCK, nfvy, mask=at_release)
             tl.debug_barrier()
             for si in range(0, length):                            # the adjoint, back through the chunk
                 s = length - 1 - si
                 k = k0 + s + 1
                 act = rmask & (k <= K)
                 if FRAMES:
-                    if k % every == 0:
+                    if k % every == 0:                             # (a lerped rope's frame K: in its start)
                         at = frame + (k // every) * (2 * N)
-                        seen = act[:, None] & nmask
+                        seen = (act & ~(lerped & (k == K)))[:, None] & nmask
                         gx += tl.load(gframes_ptr + at, mask=seen, other=0.0)
                         gy += tl.load(gframes_ptr + at + 1, mask=seen, other=0.0)
                 drag = act & (k <= ng)
@@ -413,20 +486,49 @@ if triton is not None:
                 ay = tl.sum(tl.where(on, gy, 0.0), axis=1)
                 cx = tl.sum(tl.where(on, gvx, 0.0), axis=1)
                 cy = tl.sum(tl.where(on, gvy, 0.0), axis=1)
-                pdx, pdy = _path_adjoint(k, dx, dy, sp, safe, h, vmax, ax, ay, cx, cy)
+                lastk = lerped & (k == K)                          # x_out = x_{K-1} + phi (x_K - x_{K-1})
+                sc = tl.where(lastk, phi, 1.0)                     # (phi through substep K, 1 - phi around it)
+                blend = drag & (k == ng) & (phi < 1.0)             # node = free + phi (reference - free)
+                if tl.max(blend.to(tl.int32), axis=0) > 0:
+                    frac = tl.minimum(k * h * sp / safe, 1.0)
+                    step = (frac - tl.minimum((k - 1) * h * sp / safe, 1.0)) / h
+                    fx = tl.load(free, mask=blend, other=0.0)
+                    fy = tl.load(free + BLOCK, mask=blend, other=0.0)
+                    fvx = tl.load(free + 2 * BLOCK, mask=blend, other=0.0)
+                    fvy = tl.load(free + 3 * BLOCK, mask=blend, other=0.0)
+                    gphi += tl.where(blend, sc * (ax * (sx + frac * dx - fx) + ay * (sy + frac * dy - fy)
+                                                  + cx * (step * dx - fvx) + cy * (step * dy - fvy)), 0.0)
+                w = tl.where(blend, phi, 1.0)                      # the path's share of the node's adjoint
+                pw = sc * w
+                pdx, pdy = _path_adjoint(k, dx, dy, sp, safe, h, vmax, pw * ax, pw * ay, pw * cx, pw * cy)
                 gdx += tl.where(drag, pdx, 0.0)
                 gdy += tl.where(drag, pdy, 0.0)
-                gsx += ax
-                gsy += ay
-                gx = tl.where(on, 0.0, gx)
-                gy = tl.where(on, 0.0, gy)
-                gvx = tl.where(on, 0.0, gvx)
-                gvy = tl.where(on, 0.0, gvy)
+                gsx += pw * ax
+                gsy += pw * ay
+                keep = (1.0 - w)[:, None]
+                gx = tl.where(on, keep * gx, gx)
+                gy = tl.where(on, keep * gy, gy)
+                gvx = tl.where(on, keep * gvx, gvx)
+                gvy = tl.where(on, keep * gvy, gvy)
+                live = act[:, None] & nmask
+                ux = gvx + h * gx
+                uy = gvy + h * gy
+                if tl.max(lastk.to(tl.int32), axis=0) > 0:
+                    rest = 1.0 - sc
+                    ux = sc[:, None] * ux
+                    uy = sc[:, None] * uy
+                    gvx = tl.where(live, damp * ux + rest[:, None] * gvx + tl.where(on, (rest * w * cx)[:, None], 0.0),
+                                   gvx)
+                    gvy = tl.where(live, damp * uy + rest[:, None] * gvy + tl.where(on, (rest * w * cy)[:, None], 0.0),
+                                   gvy)
+                    gx += tl.where(on, (rest * w * ax)[:, None], 0.0)
+                    gy += tl.where(on, (rest * w * ay)[:, None], 0.0)
+                else:
+                    gvx = tl.where(live, damp * ux, gvx)
+                    gvy = tl.where(live, damp * uy, gvy)
                 base = scratch + s * (NC * BLOCK * N_PAD)
                 px = tl.load(base + plane)
                 py = tl.load(base + BLOCK * N_PAD + plane)
-                ux = gvx + h * gx
-                uy = gvy + h * gy
                 hux, huy, dot_s, dot_b = _hvp(px, py, ux, uy, ks, kb, l0, jj, link, inner, nxt, prv)
                 if PHYS:
                     pvx = tl.load(base + 2 * BLOCK * N_PAD + plane)
@@ -435,11 +537,8 @@ if triton is not None:
                     acc_s += tl.where(act, dot_s, 0.0)
                     acc_b += tl.where(act, dot_b, 0.0)
                     acc_w += tl.where(act, uv + hm_r * (ks_r * dot_s + kb_r * dot_b), 0.0)
-                live = act[:, None] & nmask
                 gx = tl.where(live, gx - coef * hux, gx)
                 gy = tl.where(live, gy - coef * huy, gy)
-                gvx = tl.where(live, damp * ux, gvx)
-                gvy = tl.where(live, damp * uy, gvy)
             tl.debug_barrier()
         if FRAMES:                                                 # frame 0, the start positions
             gx += tl.load(gframes_ptr + frame, mask=nmask, other=0.0)
@@ -451,8 +550,9 @@ if triton is not None:
         tl.store(out_gpos_ptr + offs + 1, gy, mask=nmask)
         tl.store(out_gvel_ptr + offs, gvx, mask=nmask)
         tl.store(out_gvel_ptr + offs + 1, gvy, mask=nmask)
-        tl.store(out_gdelta_ptr + rope64 * 2, gdx, mask=rmask)
-        tl.store(out_gdelta_ptr + rope64 * 2 + 1, gdy, mask=rmask)
+        _, dphix, dphiy = _share(dx, dy, sp, safe, ng, h, vmax)
+        tl.store(out_gdelta_ptr + rope64 * 2, gdx + gphi * dphix, mask=rmask)
+        tl.store(out_gdelta_ptr + rope64 * 2 + 1, gdy + gphi * dphiy, mask=rmask)
         if PHYS:
             coef_r = hm_r * damp_r
             tl.store(out_gphys_ptr + rope64 * 4, coef_r * acc_s, mask=rmask)
@@ -520,7 +620,7 @@ def forward(p, pos, vel, node, delta, speed, n_grasp, phys, fixed_steps: int = -
     settled = torch.zeros(batch, dtype=torch.int8, device=dev)
     diverged = torch.zeros(batch, dtype=torch.int8, device=dev)
     chunk = chunk_substeps(_longest(p, fixed_steps))
-    slots = _longest(p, fixed_steps) // chunk + 1
+    slots = _longest(p, fixed_steps) // chunk + 2          # the last: x_K - x_{K-1} of a rope the cap stopped
     ckpt = pos.new_empty(batch, slots, 4, n) if save else None
     cap = frame_slots(p, fixed_steps, record_every) if record_every > 0 else 0
     frames = pos.new_empty(batch, cap, n, 2) if record_every > 0 else None
@@ -537,18 +637,20 @@ def forward(p, pos, vel, node, delta, speed, n_grasp, phys, fixed_steps: int = -
 
 
 def backward(p, pos, node, delta, speed, n_grasp, phys, steps, ckpt, grad_pos, grad_vel, fixed_steps: int = -1,
-             want_phys: bool = False, grad_frames=None, record_every: int = 0):
+             want_phys: bool = False, grad_frames=None, record_every: int = 0, settled=None, diverged=None):
     """The adjoint of ``forward`` (run with ``save``): returns (grad_pos, grad_vel, grad_delta, grad_phys) for the
     incoming gradients of the final positions and velocities (and of the frames, ``grad_frames`` (B, frame_slots,
     N, 2) of a move recorded every ``record_every`` substeps); grad_phys (B, 4) w.r.t. the columns if
-    ``want_phys``, else None. Memory: the checkpoints and one chunk of states per block of ropes."""
+    ``want_phys``, else None. ``settled``, ``diverged``: the forward's flags (a rope with neither was stopped by
+    the settle cap, whose release share the adjoint follows). Memory: the checkpoints and one chunk of states per
+    block of ropes."""
     batch, n = pos.shape[0], p.n_nodes
     dev, dtype = pos.device, pos.dtype
     n_pad = triton.next_power_of_2(n)
     chunk = chunk_substeps(_longest(p, fixed_steps))
     programs = triton.cdiv(batch, BLOCK_ROPES)
     planes = 4 if want_phys else 2
-    scratch = pos.new_empty(max(programs, 1) * chunk * planes * BLOCK_ROPES * n_pad)
+    scratch = pos.new_empty(max(programs, 1) * (chunk * planes * BLOCK_ROPES * n_pad + 4 * BLOCK_ROPES))
     grad_pos = torch.zeros_like(pos) if grad_pos is None else grad_pos.detach().to(dtype).contiguous()
     grad_vel = torch.zeros_like(pos) if grad_vel is None else grad_vel.detach().to(dtype).contiguous()
     if grad_frames is not None:
@@ -557,13 +659,18 @@ def backward(p, pos, node, delta, speed, n_grasp, phys, steps, ckpt, grad_pos, g
         grad_frames = grad_frames.detach().to(dtype).contiguous()
     out_gpos, out_gvel = torch.empty_like(pos), torch.empty_like(pos)
     out_gdelta = pos.new_empty(batch, 2)
+    stopped = torch.ones(batch, dtype=torch.int8, device=dev)       # free evolution: no drag, no release share
+    if fixed_steps < 0:
+        if settled is None or diverged is None:
+            raise ValueError("the adjoint of a move needs the forward's settled and diverged flags")
+        stopped = (settled | diverged).to(device=dev, dtype=torch.int8).contiguous()
     out_gphys = pos.new_empty(batch, 4) if want_phys else out_gdelta
     if batch > 0:
         _adjoint_kernel[(programs,)](
             pos.detach().contiguous(), node.to(device=dev, dtype=torch.int64).contiguous(),
             delta.detach().to(dtype).contiguous(), speed.detach().to(dtype).contiguous(),
             n_grasp.to(device=dev, dtype=torch.int64).contiguous(), phys.detach().to(dtype).contiguous(),
-            scalars(p, dev, dtype), steps, ckpt, scratch, grad_pos, grad_vel,
+            scalars(p, dev, dtype), steps, stopped, ckpt, scratch, grad_pos, grad_vel,
             grad_pos if grad_frames is None else grad_frames, out_gpos, out_gvel, out_gdelta, out_gphys, batch,
             ckpt.shape[1], max(int(record_every), 1), 0 if grad_frames is None else grad_frames.shape[1],
             N=n, N_PAD=n_pad, BLOCK=BLOCK_ROPES, CHUNK=chunk, PHYS=want_phys, NC=planes,
@@ -594,18 +701,19 @@ class TritonMove(torch.autograd.Function):
         out_pos, out_vel, steps, settled, diverged, ckpt, frames = forward(
             p, pos, vel, node, delta, speed, path_steps, phys, fixed_steps, save=save, record_every=record_every)
         ctx.params, ctx.fixed_steps, ctx.record_every = p, fixed_steps, record_every
-        ctx.save_for_backward(pos, node, delta, speed, path_steps, phys, steps, ckpt)
+        ctx.save_for_backward(pos, node, delta, speed, path_steps, phys, steps, ckpt, settled, diverged)
         return move_outputs(ctx, out_pos, out_vel, steps, settled, diverged, frames)
 
     @staticmethod
     def backward(ctx, grad_pos, grad_vel, _steps, _settled, _diverged, grad_frames):
-        pos, node, delta, speed, path_steps, phys, steps, ckpt = ctx.saved_tensors
+        pos, node, delta, speed, path_steps, phys, steps, ckpt, settled, diverged = ctx.saved_tensors
         needs = ctx.needs_input_grad
         grad_frames = frames_gradient(grad_frames)
         if grad_pos is None and grad_vel is None and grad_frames is None:
             return (None,) * 9
         g_pos, g_vel, g_delta, g_phys = backward(ctx.params, pos, node, delta, speed, path_steps, phys, steps, ckpt,
                                                  grad_pos, grad_vel, ctx.fixed_steps, want_phys=needs[7],
-                                                 grad_frames=grad_frames, record_every=ctx.record_every)
+                                                 grad_frames=grad_frames, record_every=ctx.record_every,
+                                                 settled=settled, diverged=diverged)
         return (None, g_pos if needs[1] else None, g_vel if needs[2] else None, None,
                 g_delta if needs[4] and ctx.fixed_steps < 0 else None, None, None, g_phys, None)

@@ -62,11 +62,34 @@ inline Scalars rope_scalars(const Scalars& s, const double* phys, int64_t b) {
   return r;
 }
 
+// The release within the drag's last substep (control.last_substep_fraction): the share phi of that substep the
+// path still fills, and d phi / d d (nonzero only at max_speed, where phi = |d| / (vmax h) - (n_grasp - 1)).
+// phi = 1 (a whole number of substeps, a zero drag, free evolution) leaves the move as it was.
+template <typename T>
+inline T last_share(const T* d, T speed, int64_t n_grasp, T h, T vmax, T* dphi) {
+  dphi[0] = dphi[1] = T(0);
+  if (n_grasp <= 0) return T(1);
+  const T len = std::sqrt(d[0] * d[0] + d[1] * d[1]);
+  const T raw = len / (speed * h) - T(n_grasp - 1);
+  if (!(raw < T(1))) return T(1);
+  if (!(raw > T(0))) return T(0);
+  if (!(speed > vmax) && len > T(0)) {
+    dphi[0] = d[0] / (len * speed * h);
+    dphi[1] = d[1] / (len * speed * h);
+  }
+  return raw;
+}
+
 template <typename T>
 struct Work {         // per-rope scratch
   std::vector<T> e, len2, beta, G, F, we, dbeta;
+  // the release (see last_share): phi, d phi / d d, the grasped node's free (x, y, vx, vy) on the last drag
+  // substep, and for a rope stopped by the settle cap its state before (prev) and after (cap) the last substep
+  T phi = T(1), dphi[2] = {T(0), T(0)}, free[4] = {T(0), T(0), T(0), T(0)};
+  bool lerped = false;
+  std::vector<T> xprev, vprev, xcap, vcap;
   explicit Work(int64_t n) : e(2 * (n - 1)), len2(n - 1), beta(n - 2), G(2 * (n - 1)), F(2 * n),
-                             we(2 * (n - 1)), dbeta(n - 2) {}
+                             we(2 * (n - 1)), dbeta(n - 2), xprev(2 * n), vprev(2 * n), xcap(2 * n), vcap(2 * n) {}
 };
 
 // Link vectors, squared lengths, signed turning angles.
@@ -243,15 +266,32 @@ int64_t run_rope(const Scalars& s, const Ints& in, T* x, T* v, int64_t g, const 
       if (!std::isfinite(x[i]) || std::abs(x[i]) > T(s.radius)) return true;
     return false;
   };
+  const T phi = in.fixed_steps >= 0 ? T(1) : last_share(d, speed, n_grasp, h, T(s.vmax), w.dphi);
+  const int64_t cap_at = std::max<int64_t>(1, n_grasp + in.max_settle);
+  w.phi = phi;
+  w.lerped = false;
   for (int64_t k = 1;; ++k) {
+    if (phi < T(1) && k == cap_at) {
+      std::copy(x, x + 2 * n, w.xprev.begin());
+      std::copy(v, v + 2 * n, w.vprev.begin());
+    }
     substep(s, n, x, v, w);
     if (betas) std::copy(w.beta.begin(), w.beta.end(), betas + (n - 2) * (k - 1));   // beta(x_{k-1})
     if (k <= n_grasp) {
       reference(start, d, speed, k, h, ref, refv);
-      x[2 * g] = ref[0];
-      x[2 * g + 1] = ref[1];
-      v[2 * g] = refv[0];
-      v[2 * g + 1] = refv[1];
+      if (k == n_grasp && phi < T(1)) {
+        T* f = w.free;
+        f[0] = x[2 * g], f[1] = x[2 * g + 1], f[2] = v[2 * g], f[3] = v[2 * g + 1];
+        x[2 * g] = f[0] + phi * (ref[0] - f[0]);
+        x[2 * g + 1] = f[1] + phi * (ref[1] - f[1]);
+        v[2 * g] = f[2] + phi * (refv[0] - f[2]);
+        v[2 * g + 1] = f[3] + phi * (refv[1] - f[3]);
+      } else {
+        x[2 * g] = ref[0];
+        x[2 * g + 1] = ref[1];
+        v[2 * g] = refv[0];
+        v[2 * g + 1] = refv[1];
+      }
     }
     if (traj) std::copy(x, x + 2 * n, traj + 2 * n * k);
     if (vtraj) std::copy(v, v + 2 * n, vtraj + 2 * n * k);
@@ -279,7 +319,19 @@ int64_t run_rope(const Scalars& s, const Ints& in, T* x, T* v, int64_t g, const 
           return k;
         }
       }
-      if (capped) return k;
+      if (capped) {
+        if (phi < T(1)) {
+          std::copy(x, x + 2 * n, w.xcap.begin());
+          std::copy(v, v + 2 * n, w.vcap.begin());
+          for (int64_t i = 0; i < 2 * n; ++i) {
+            x[i] = w.xprev[i] + phi * (x[i] - w.xprev[i]);
+            v[i] = w.vprev[i] + phi * (v[i] - w.vprev[i]);
+          }
+          w.lerped = true;
+          if (frames && k % in.record_every == 0) std::copy(x, x + 2 * n, frames + 2 * n * (k / in.record_every));
+        }
+        return k;
+      }
     }
   }
 }
@@ -321,8 +373,13 @@ inline T fast_atan2(T y, T x) {
 template <typename T>
 struct GroupWork {
   std::vector<T> e, len2, bp, Gp, F, we, dbp;
+  // the release of each lane, as Work's (in group layout)
+  T phi[W], dphi[W][2], free[W][4];
+  bool lerped[W];
+  std::vector<T> xprev, vprev, xcap, vcap;
   explicit GroupWork(int64_t n) : e(2 * (n - 1) * W), len2((n - 1) * W), bp(n * W, T(0)), Gp(2 * (n + 1) * W, T(0)),
-                                  F(2 * n * W), we(2 * (n - 1) * W), dbp(n * W, T(0)) {}
+                                  F(2 * n * W), we(2 * (n - 1) * W), dbp(n * W, T(0)), xprev(2 * n * W),
+                                  vprev(2 * n * W), xcap(2 * n * W), vcap(2 * n * W) {}
 };
 
 template <typename T>
@@ -477,12 +534,16 @@ int64_t run_group(const Scalars& s, const LanePhys<T>& p, const Ints& in, T* x, 
   const T* __restrict hm = p.hm;
   const T* __restrict damp = p.damp;
   T start[W][2], act[W];
+  int64_t cap_at[W];
   for (int l = 0; l < W; ++l) {
     start[l][0] = x[(2 * lane[l].g) * W + l];
     start[l][1] = x[(2 * lane[l].g + 1) * W + l];
     lane[l].active = true;
     lane[l].settled = lane[l].diverged = 0;
     act[l] = T(1);
+    w.phi[l] = in.fixed_steps >= 0 ? T(1) : last_share(d + 2 * l, speed[l], lane[l].n_grasp, h, T(s.vmax), w.dphi[l]);
+    w.lerped[l] = false;
+    cap_at[l] = std::max<int64_t>(1, lane[l].n_grasp + in.max_settle);
   }
   auto record = [&](int64_t j) {
     for (int l = 0; l < W; ++l) {
@@ -501,6 +562,14 @@ int64_t run_group(const Scalars& s, const LanePhys<T>& p, const Ints& in, T* x, 
     return false;
   };
   for (int64_t k = 1;; ++k) {
+    for (int l = 0; l < W; ++l) {
+      if (w.phi[l] < T(1) && k == cap_at[l]) {
+        for (int64_t i = 0; i < rows; ++i) {
+          w.xprev[i * W + l] = x[i * W + l];
+          w.vprev[i * W + l] = v[i * W + l];
+        }
+      }
+    }
     group_forces(s, p, n, x, w);
     const T* __restrict F = w.F.data();
     for (int64_t i = 0; i < rows; ++i) {
@@ -520,10 +589,22 @@ int64_t run_group(const Scalars& s, const LanePhys<T>& p, const Ints& in, T* x, 
         T ref[2], refv[2];
         reference(start[l], d + 2 * l, speed[l], k, h, ref, refv);
         const int64_t g = lane[l].g;
-        x[(2 * g) * W + l] = ref[0];
-        x[(2 * g + 1) * W + l] = ref[1];
-        v[(2 * g) * W + l] = refv[0];
-        v[(2 * g + 1) * W + l] = refv[1];
+        T* xg = x + (2 * g) * W + l;          // xg[0], xg[W]: the node's x, y
+        T* vg = v + (2 * g) * W + l;
+        const T phi = w.phi[l];
+        if (k == lane[l].n_grasp && phi < T(1)) {
+          T* f = w.free[l];
+          f[0] = xg[0], f[1] = xg[W], f[2] = vg[0], f[3] = vg[W];
+          xg[0] = f[0] + phi * (ref[0] - f[0]);
+          xg[W] = f[1] + phi * (ref[1] - f[1]);
+          vg[0] = f[2] + phi * (refv[0] - f[2]);
+          vg[W] = f[3] + phi * (refv[1] - f[3]);
+        } else {
+          xg[0] = ref[0];
+          xg[W] = ref[1];
+          vg[0] = refv[0];
+          vg[W] = refv[1];
+        }
       }
     }
     if (traj) std::copy(x, x + rows * W, traj + rows * W * k);
@@ -555,6 +636,21 @@ int64_t run_group(const Scalars& s, const LanePhys<T>& p, const Ints& in, T* x, 
             if (std::sqrt(vmax2) < T(s.threshold)) {
               lane[l].settled = 1;
               stop = true;
+            }
+          }
+          if (capped && !stop && w.phi[l] < T(1)) {
+            const T phi = w.phi[l];
+            for (int64_t i = 0; i < rows; ++i) {
+              const int64_t j = i * W + l;
+              w.xcap[j] = x[j];
+              w.vcap[j] = v[j];
+              x[j] = w.xprev[j] + phi * (x[j] - w.xprev[j]);
+              v[j] = w.vprev[j] + phi * (v[j] - w.vprev[j]);
+            }
+            w.lerped[l] = true;
+            if (frames && k % in.record_every == 0) {
+              T* dst = frames + ((b0 + l) * in.frame_cap + k / in.record_every) * rows;
+              for (int64_t i = 0; i < rows; ++i) dst[i] = x[i * W + l];
             }
           }
           stop = stop || capped;
@@ -631,7 +727,24 @@ void backward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, 
   const T h = T(s.h), vmax = T(s.vmax);
   const T* __restrict damp = p.damp;
   const T* __restrict coef = p.coef;
-  T gd[W][2] = {}, gstart[W][2] = {}, act[W];
+  T gd[W][2] = {}, gstart[W][2] = {}, act[W], gphi[W] = {};
+  // the release (see run_group): a lane stopped by the cap returned x_prev + phi (x_K - x_prev)
+  std::vector<T> gout_x(gx), gout_v(gv);
+  auto frame_at_end = [&](int l) { return grad_frames && w.lerped[l] && lane[l].steps % in.record_every == 0; };
+  for (int l = 0; l < W; ++l) {
+    if (!w.lerped[l]) continue;
+    const T phi = w.phi[l];
+    if (frame_at_end(l)) {                  // that frame is the lane's x_out too
+      const T* gf = grad_frames + ((b0 + l) * in.frame_cap + lane[l].steps / in.record_every) * rows;
+      for (int64_t i = 0; i < rows; ++i) gx[i * W + l] = gout_x[i * W + l] += gf[i];
+    }
+    for (int64_t i = 0; i < rows; ++i) {
+      const int64_t j = i * W + l;
+      gphi[l] += gout_x[j] * (w.xcap[j] - w.xprev[j]) + gout_v[j] * (w.vcap[j] - w.vprev[j]);
+      gx[j] *= phi;
+      gv[j] *= phi;
+    }
+  }
   T ds[W], db[W], acc_s[W] = {}, acc_b[W] = {}, acc_w[W] = {}, uv[W];
   // frame j of lane l's rope, when its gradient is injected at substep j * record_every
   auto frame_grad = [&](int l, int64_t j) { return grad_frames + ((b0 + l) * in.frame_cap + j) * rows; };
@@ -640,15 +753,29 @@ void backward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, 
     for (int l = 0; l < W; ++l) {
       act[l] = k <= lane[l].steps ? T(1) : T(0);
       if (k > lane[l].steps) continue;
-      if (on_frame) {
+      if (on_frame && !(k == lane[l].steps && frame_at_end(l))) {
         const T* gf = frame_grad(l, k / in.record_every);
         for (int64_t i = 0; i < rows; ++i) gx[i * W + l] += gf[i];
       }
       if (k > lane[l].n_grasp) continue;
       const int64_t g = lane[l].g;
       T a[2] = {gx[(2 * g) * W + l], gx[(2 * g + 1) * W + l]}, c[2] = {gv[(2 * g) * W + l], gv[(2 * g + 1) * W + l]};
-      reference_adjoint(d + 2 * l, sp[l], k, h, vmax, a, c, gd[l], gstart[l]);
-      gx[(2 * g) * W + l] = gx[(2 * g + 1) * W + l] = gv[(2 * g) * W + l] = gv[(2 * g + 1) * W + l] = T(0);
+      const T phi = w.phi[l];
+      if (k == lane[l].n_grasp && phi < T(1)) {       // node = free + phi (reference - free)
+        T start[2] = {pos[(b0 + l) * rows + 2 * g], pos[(b0 + l) * rows + 2 * g + 1]}, ref[2], refv[2];
+        reference(start, d + 2 * l, sp[l], k, h, ref, refv);
+        const T* f = w.free[l];
+        gphi[l] += a[0] * (ref[0] - f[0]) + a[1] * (ref[1] - f[1]) + c[0] * (refv[0] - f[2]) + c[1] * (refv[1] - f[3]);
+        T pa[2] = {phi * a[0], phi * a[1]}, pc[2] = {phi * c[0], phi * c[1]};
+        reference_adjoint(d + 2 * l, sp[l], k, h, vmax, pa, pc, gd[l], gstart[l]);
+        gx[(2 * g) * W + l] = (T(1) - phi) * a[0];
+        gx[(2 * g + 1) * W + l] = (T(1) - phi) * a[1];
+        gv[(2 * g) * W + l] = (T(1) - phi) * c[0];
+        gv[(2 * g + 1) * W + l] = (T(1) - phi) * c[1];
+      } else {
+        reference_adjoint(d + 2 * l, sp[l], k, h, vmax, a, c, gd[l], gstart[l]);
+        gx[(2 * g) * W + l] = gx[(2 * g + 1) * W + l] = gv[(2 * g) * W + l] = gv[(2 * g + 1) * W + l] = T(0);
+      }
     }
     for (int64_t i = 0; i < rows * W; ++i) u[i] = gv[i] + h * gx[i];
     group_hvp(s, p, n, traj.get() + rows * W * (k - 1), betas.get() + n * W * (k - 1), u.data(), hu.data(), w,
@@ -677,6 +804,14 @@ void backward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, 
         gvi[l] = act[l] != T(0) ? damp[l] * ui[l] : gvo;
       }
     }
+    for (int l = 0; l < W; ++l) {
+      if (!w.lerped[l] || k != lane[l].steps) continue;
+      const T rest = T(1) - w.phi[l];
+      for (int64_t i = 0; i < rows; ++i) {
+        gx[i * W + l] += rest * gout_x[i * W + l];
+        gv[i * W + l] += rest * gout_v[i * W + l];
+      }
+    }
   }
   for (int l = 0; l < W; ++l) {
     if (grad_frames) {
@@ -687,8 +822,8 @@ void backward_group(const Scalars& s, const Ints& in, int64_t b0, const T* pos, 
       gx[(2 * lane[l].g) * W + l] += gstart[l][0];
       gx[(2 * lane[l].g + 1) * W + l] += gstart[l][1];
     }
-    grad_delta[2 * (b0 + l)] = gd[l][0];
-    grad_delta[2 * (b0 + l) + 1] = gd[l][1];
+    grad_delta[2 * (b0 + l)] = gd[l][0] + gphi[l] * w.dphi[l][0];
+    grad_delta[2 * (b0 + l) + 1] = gd[l][1] + gphi[l] * w.dphi[l][1];
     if (grad_phys) {
       T* gp = grad_phys + 4 * (b0 + l);
       gp[0] = coef[l] * acc_s[l];
@@ -771,16 +906,43 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
     T dots[2], acc_s = 0, acc_b = 0, acc_w = 0;
     const T h = T(s.h), vmax = T(s.vmax);
     const T coef = h * s.inv_m * s.damp;
+    // the release (see run_rope): x_out = x_prev + phi (x_K - x_prev) for a rope stopped by the cap
+    const T phi = w.phi;
+    std::vector<T> gsum(grad_out_pos + 2 * n * b, grad_out_pos + 2 * n * (b + 1));
+    const bool frame_at_end = gf && K % in.record_every == 0;     // that frame is x_out too
+    if (w.lerped && frame_at_end)
+      for (int64_t i = 0; i < 2 * n; ++i) gsum[i] += gf[2 * n * (K / in.record_every) + i];
+    const T* gpo = gsum.data();
+    const T* gvo = grad_out_vel ? grad_out_vel + 2 * n * b : nullptr;
+    T gphi = 0;
+    if (w.lerped) {
+      std::copy(gsum.begin(), gsum.end(), gx);
+      for (int64_t i = 0; i < 2 * n; ++i) {
+        gphi += gpo[i] * (w.xcap[i] - w.xprev[i]) + (gvo ? gvo[i] * (w.vcap[i] - w.vprev[i]) : T(0));
+        gx[i] *= phi;
+        gv[i] *= phi;
+      }
+    }
     for (int64_t k = K; k >= 1; --k) {
-      if (gf && k % in.record_every == 0) {
+      if (gf && k % in.record_every == 0 && !(w.lerped && k == K)) {
         const T* f = gf + 2 * n * (k / in.record_every);
         for (int64_t i = 0; i < 2 * n; ++i) gx[i] += f[i];
       }
       if (k <= n_grasp[b]) {
         T* a = gx + 2 * g;
         T* c = gv + 2 * g;
-        reference_adjoint(d, sp, k, h, vmax, a, c, gd, gstart);
-        a[0] = a[1] = c[0] = c[1] = T(0);
+        if (k == n_grasp[b] && phi < T(1)) {       // node = free + phi (reference - free)
+          T start[2] = {pos[2 * n * b + 2 * g], pos[2 * n * b + 2 * g + 1]}, ref[2], refv[2];
+          reference(start, d, sp, k, h, ref, refv);
+          const T* f = w.free;
+          gphi += a[0] * (ref[0] - f[0]) + a[1] * (ref[1] - f[1]) + c[0] * (refv[0] - f[2]) + c[1] * (refv[1] - f[3]);
+          T pa[2] = {phi * a[0], phi * a[1]}, pc[2] = {phi * c[0], phi * c[1]};
+          reference_adjoint(d, sp, k, h, vmax, pa, pc, gd, gstart);
+          a[0] *= T(1) - phi, a[1] *= T(1) - phi, c[0] *= T(1) - phi, c[1] *= T(1) - phi;
+        } else {
+          reference_adjoint(d, sp, k, h, vmax, a, c, gd, gstart);
+          a[0] = a[1] = c[0] = c[1] = T(0);
+        }
       }
       // x_k = x_{k-1} + h v_k, v_k = damp (v_{k-1} + h/m F(x_{k-1})), F = -grad E
       for (int64_t i = 0; i < 2 * n; ++i) v[i] = gv[i] + h * gx[i];      // v reused as u
@@ -798,6 +960,12 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
         gx[i] -= coef * hu[i];
         gv[i] = T(s.damp) * v[i];
       }
+      if (w.lerped && k == K) {
+        for (int64_t i = 0; i < 2 * n; ++i) {
+          gx[i] += (T(1) - phi) * gpo[i];
+          if (gvo) gv[i] += (T(1) - phi) * gvo[i];
+        }
+      }
     }
     if (gf)
       for (int64_t i = 0; i < 2 * n; ++i) gx[i] += gf[i];
@@ -805,8 +973,8 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
       gx[2 * g] += gstart[0];
       gx[2 * g + 1] += gstart[1];
     }
-    grad_delta[2 * b] = gd[0];
-    grad_delta[2 * b + 1] = gd[1];
+    grad_delta[2 * b] = gd[0] + gphi * w.dphi[0];
+    grad_delta[2 * b + 1] = gd[1] + gphi * w.dphi[1];
     if (grad_phys) {
       T* gp = grad_phys + 4 * b;
       gp[0] = coef * acc_s;
