@@ -41,3 +41,16 @@ def crumpled(batch, params, sigma=1.4, seed=0, dtype=torch.float64):
     """Random shapes with large turning angles (beyond 90 degrees at some nodes)."""
     p = dataclasses.replace(params, sigma=sigma)
     return diffdlo.random_shape(batch, p, torch.Generator().manual_seed(seed), dtype=dtype)
+
+
+def cli_error(main, argv, capsys) -> str:
+    """The stderr of a command-line entry point ``main(argv)`` that must refuse its arguments: exit code 2 (returned
+    or raised by argparse) and a message."""
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.strip(), "no message"
+    return err

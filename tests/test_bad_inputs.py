@@ -11,6 +11,7 @@ import diffdlo
 from agents import planet, ppo, sac
 from diffdlo.envs import BatchedShapeControl
 from planners import cem, gradient, greedy
+from tests.conftest import cli_error
 
 LEARNERS = {"sac": sac, "ppo": ppo, "planet": planet}
 PLANNERS = {"cem": cem, "gradient": gradient, "greedy": greedy}
@@ -18,17 +19,6 @@ PLANNERS = {"cem": cem, "gradient": gradient, "greedy": greedy}
 
 def tree(root):
     return {str(p.relative_to(root)): p.stat().st_mtime_ns for p in root.rglob("*")}
-
-
-def cli_error(main, argv, capsys) -> str:
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert err.strip(), "no message"
-    return err
 
 
 # ---------------------------------------------------------------------- learners: config values (--set, flags)

@@ -19,6 +19,7 @@ from diffdlo.envs import BatchedShapeControl, EnvOptions
 from planners import greedy
 from planners.common import build_run, run_episode
 from planners.greedy import GreedyPlanner
+from tests.conftest import cli_error
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -158,16 +159,6 @@ def test_env_options_take_a_worst_tolerance_and_none(small):
     assert EnvOptions().resolve().success_tol == 0.01                              # Table 2.1's 1 cm stays
     with pytest.raises(ValueError, match="success_worst_tol must be a positive finite number .m. or None, got '1cm'"):
         EnvOptions(success_worst_tol="1cm")
-
-
-def cli_error(main, argv, capsys) -> str:
-    try:
-        code = main(argv)
-    except SystemExit as exc:
-        code = exc.code
-    err = capsys.readouterr().err
-    assert code == 2, err
-    return err
 
 
 @pytest.mark.parametrize("flag", ["--success-tol", "--success-worst-tol"])
