@@ -5,6 +5,7 @@ finished when its ``results.json`` exists.
 """
 from __future__ import annotations
 
+import math
 import shlex
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,47 @@ def load_grid(quick: bool = False, path: Path | str = GRID_FILE) -> dict[str, An
     bad = [t for t in main.get("targets", []) if t not in grid["targets"]]
     if bad:
         raise ValueError(f"{path}: grid {name!r}: main targets {bad} are not targets of the grid")
+    for method, spec in grid["methods"].items():
+        for variant, v in (spec.get("variants") or {}).items():
+            if "tolerance" in (v or {}):
+                try:
+                    check_tolerance(v["tolerance"])
+                except ValueError as exc:
+                    raise ValueError(f"{path}: grid {name!r}: variant {method}/{variant}: {exc}") from None
     return grid
+
+
+def _length(value: Any) -> bool:
+    """A positive finite number (not a bool, not text)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+
+
+def check_tolerance(tolerance: Any) -> tuple[float, float | None]:
+    """A variant's ``tolerance`` ({mean: M, worst: W}, W optional or null; metres, each a positive finite number)
+    as (mean, worst or None); ValueError naming the bad value otherwise."""
+    if not isinstance(tolerance, dict):
+        raise ValueError(f"'tolerance' must be a mapping {{mean: M, worst: W}} [m] (worst optional), got "
+                         f"{tolerance!r}")
+    unknown = [k for k in tolerance if k not in ("mean", "worst")]
+    if unknown:
+        raise ValueError(f"'tolerance' has the keys mean and worst, got {', '.join(map(repr, unknown))} in "
+                         f"{tolerance!r}")
+    if "mean" not in tolerance:
+        raise ValueError(f"'tolerance' needs its mean [m], got {tolerance!r}")
+    for key in ("mean", "worst"):
+        value = tolerance.get(key)
+        if (key == "mean" or value is not None) and not _length(value):
+            raise ValueError(f"'tolerance' {key} must be a positive finite number [m]"
+                             + (" or null" if key == "worst" else "") + f", got {value!r}")
+    worst = tolerance.get("worst")
+    return float(tolerance["mean"]), None if worst is None else float(worst)
+
+
+def row_tolerance(grid: dict[str, Any], method: str, variant: str) -> tuple[float, float | None] | None:
+    """The (mean, worst or None) tolerance a row declares (its variant's ``tolerance``: a precision row, read at it
+    from its episodes' recorded errors), or None for a row read at its episodes' own success."""
+    v = grid["methods"].get(method, {}).get("variants", {}).get(variant) or {}
+    return check_tolerance(v["tolerance"]) if "tolerance" in v else None
 
 
 def method_label(grid: dict[str, Any], method: str) -> str:
