@@ -32,9 +32,10 @@ planners and learners alike, so this is "ended within 2 cm". Planners also get "
 
 Modules: grid (the YAML, cells, command lines), runner (subprocesses, resume, Ray), processes (the cells'
 process groups, stopping them), settings (a finished cell's settings against the grid's), records (the committed
-results), stats (intervals, row statistics), summary (the main table, pairing, missing cells and their cost), costs
-(planning against learning), report (the markdown), figures (matplotlib), arguments (options and their checks), cli
-(main). Atomic writes and the lock are diffdlo/utils/files.py's.
+results), stats (intervals, row statistics), summary (the main table, pairing, missing cells and their cost),
+precision (the rows that declare a task ``tolerance``: success at it and at a ladder of tolerances, from the
+episodes' recorded errors), costs (planning against learning), report (the markdown), figures (matplotlib), arguments
+(options and their checks), cli (main). Atomic writes and the lock are diffdlo/utils/files.py's.
 """
 from .cli import main
 from .costs import PAYBACK_SLACK, cost_section, payback, row_cost

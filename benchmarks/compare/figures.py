@@ -1,7 +1,8 @@
 """The report's figures (matplotlib, optional), drawn from the cells' records alone (no run folder): the summary
 (success and moves against the simulator moves spent), per task the learners' success against env steps, the
-planners' error against simulator evaluations, a gallery of start, final shape and target, and the cost of planning
-against learning. Each band is the mean +- the 95 % t-interval over seeds."""
+planners' error against simulator evaluations, a gallery of start, final shape and target, the cost of planning
+against learning, and the precision rows' success against the tolerance (those rows are in no other figure). Each
+band is the mean +- the 95 % t-interval over seeds."""
 from __future__ import annotations
 
 import math
@@ -13,6 +14,7 @@ import numpy as np
 from diffdlo.utils.files import replacing
 from .costs import acting_sim_evals
 from .grid import main_rows, row_label
+from .precision import ladder_points, split_done
 from .summary import heldout_source
 from .stats import t_quantile
 
@@ -21,7 +23,11 @@ def figure_names(grid: dict[str, Any], done: list, costs: dict[str, list]) -> li
     """The files ``make_figures`` writes for these cells, in the report's order (known without drawing them, so the
     report's text does not depend on matplotlib being installed)."""
     tag = "quick_" if grid["name"] == "quick" else ""
-    names = [f"{tag}summary.png"] if _summary_points(grid, {_key(c): r for c, r in done}) else []
+    by_key = {_key(c): r for c, r in done}
+    names = [f"{tag}summary.png"] if _summary_points(grid, by_key) else []
+    if ladder_points(grid, by_key):
+        names.append(f"{tag}precision.png")
+    done, _ = split_done(grid, done)          # the task figures: the rows read at their own success
     for target in _targets(grid, done):
         if any(c["kind"] == "agent" and c["target"] == target and r.get("curve") for c, r in done):
             names.append(f"{tag}success_vs_steps_{target}.png")
@@ -99,6 +105,44 @@ def _summary(plt, grid: dict[str, Any], done: dict[tuple, dict], note: str):
                  "and execute; learners: training env steps + the moves they execute (and simulate, acting by "
                  f"rollouts){note}", fontsize=9)
     fig.subplots_adjust(bottom=0.32, top=0.9, wspace=0.25)
+    return fig
+
+
+def _precision(plt, points: list[dict[str, Any]], note: str):
+    """Success against the mean-error tolerance, a panel per task, a line per precision row: filled markers exact,
+    open ones lower bounds (some episodes ended at their own, looser success first)."""
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import NullFormatter
+
+    tasks = list(dict.fromkeys(p["task"] for p in points))
+    fig, axes = plt.subplots(1, len(tasks), figsize=(max(5.0 * len(tasks), 6.0), 4.4), squeeze=False, sharey=True)
+    markers = "osD^v<>ph*"
+    labels = list(dict.fromkeys(p["label"] for p in points))
+    style = {label: dict(color=f"C{i % 10}", marker=markers[i % len(markers)]) for i, label in enumerate(labels)}
+    for ax, task in zip(axes[0], tasks):
+        for p in (p for p in points if p["task"] == task):
+            x, y = 1000 * np.array(p["tols"]), 100 * np.array(p["success"])
+            ax.plot(x, y, ls="-", lw=1, color=style[p["label"]]["color"])
+            for xi, yi, exact in zip(x, y, p["exact"]):
+                ax.plot(xi, yi, ms=7, ls="none", mfc=None if exact else "none", **style[p["label"]])
+        ticks = sorted({1000 * t for p in points for t in p["tols"]})
+        ax.set_xscale("log")
+        ax.set_xticks(ticks)
+        ax.set_xticklabels([f"{t:g}" for t in ticks])
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.invert_xaxis()                               # tighter to the right
+        ax.set_xlabel("tolerance of the mean error [mm]")
+        ax.set_title(f"{task} ({', '.join(sorted({str(p['seeds']) for p in points if p['task'] == task}))} seeds)",
+                     fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("success [%]")
+    axes[0][0].set_ylim(-5, 105)
+    handles = [Line2D([], [], ms=7, lw=1, **style[label]) for label in labels]
+    fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=2, frameon=False)
+    fig.suptitle("Precision rows: success against the tolerance of the mean error, the same episodes at each\n"
+                 f"(open markers: lower bounds, some episodes ended at their own looser success first){note}",
+                 fontsize=9)
+    fig.subplots_adjust(bottom=0.1 + 0.06 * ((len(labels) + 1) // 2), top=0.84, wspace=0.08)
     return fig
 
 
@@ -268,6 +312,10 @@ def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
     by_key = {_key(c): r for c, r in done}
     if _summary_points(grid, by_key):
         written.append(_save(plt, _summary(plt, grid, by_key, note), figdir / f"{tag}summary.png", dpi=80))
+    points = ladder_points(grid, by_key)
+    if points:
+        written.append(_save(plt, _precision(plt, points, note), figdir / f"{tag}precision.png", dpi=80))
+    done, _ = split_done(grid, done)          # the task figures: the rows read at their own success
     for target in _targets(grid, done):
         if any(c["kind"] == "agent" and c["target"] == target and r.get("curve") for c, r in done):
             written.append(_save(plt, _success_vs_steps(plt, done, target, note),

@@ -1,7 +1,8 @@
 """The markdown report (where --report names; docs/RESULTS.md for the committed one), from the cells' records: the
 committed results file (docs/results/cells.jsonl) or the finished cells of a run folder. First the main grid as one
 table and one figure, the notes on what wins where, the paired differences against CEM and the cells not run yet with
-their cost; then the definitions, one table per task with the exact commands per seed, the galleries, the cost
+their cost, the precision rows' section (precision.py, where some of their cells finished: those rows are in no
+other table); then the definitions, one table per task with the exact commands per seed, the galleries, the cost
 section and the figures. A finished cell whose settings differ from the grid's now is left out and named at the
 top."""
 from __future__ import annotations
@@ -17,9 +18,10 @@ from .costs import cost_section, row_cost
 from .figures import figure_names, make_cost_figures, make_figures
 from diffdlo.utils.files import write_text_atomic
 from .grid import ROOT, build_cells, cell_dir, main_rows
+from .precision import precision_section, split_done
 from .records import as_results, make_record, record_changes, record_key
 from .settings import changed_cells, describe_changes
-from .stats import row_stats
+from .stats import fmt_ci as _fmt_ci, row_stats
 from .summary import cell_minutes, cpu_hours, missing_section, paired_section, readme_table, summary_table
 
 README_BEGIN, README_END = "<!-- summary:begin -->", "<!-- summary:end -->"
@@ -65,15 +67,6 @@ def _load(cell: dict[str, Any]) -> dict[str, Any] | None:
     cj = cell_dir(cell) / "cell.json"
     meta = json.loads(cj.read_text()) if cj.exists() else {}
     return as_results(make_record(cell, json.loads(p.read_text()), meta))
-
-
-def _fmt_ci(m: float, lo: float, hi: float, scale: float = 1.0, nd: int = 2) -> str:
-    """"m [lo, hi]", "m (n=1)" without an interval, "—" without a value."""
-    if math.isnan(m):
-        return "—"
-    if math.isnan(lo):
-        return f"{m * scale:.{nd}f} (n=1)"
-    return f"{m * scale:.{nd}f} [{lo * scale:.{nd}f}, {hi * scale:.{nd}f}]"
 
 
 def task_groups(done: list, target: str) -> dict[tuple[str, str, str], list]:
@@ -287,6 +280,7 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
                                    "--out", str(out), "--report-only", "--report", str(doc)])
     done = [(c, r) for c, r in loaded if r is not None]
     by_key = {(c["method"], c["variant"], c["target"], c["seed"]): r for c, r in done}
+    regular, _ = split_done(grid, done)      # the precision rows have a section of their own, not the task tables
     rel = os.path.relpath(Path(figures) if figures is not None else doc.parent / "figures", doc.parent)
     lines = _preamble(grid, out, loaded, doc, source)
     if changed:
@@ -296,7 +290,7 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
     costs: dict[str, list[dict[str, Any]]] = {}
     sections: list[str] = []
     for target in grid["targets"]:
-        groups = task_groups(done, target)
+        groups = task_groups(regular, target)
         if not groups:
             continue
         sections += [f"## Task: {target}", "", "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
@@ -323,10 +317,12 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
         lines += [f"![summary]({rel}/{n})" for n in summary] + ([""] if summary else [])
         lines += _notes(grid) + paired_section(grid, by_key) + _bound(grid) + missing_section(grid, by_key)
         lines += cpu_hours(grid, by_key)
+    precision = [n for n in names if n.endswith("precision.png")]
+    lines += precision_section(grid, by_key, f"{rel}/{precision[0]}" if precision else None)
     lines += _definitions(grid, loaded) + sections
     if costs:
         lines += cost_section(costs, grid)
-    rest = [n for n in names if not n.endswith("summary.png")]
+    rest = [n for n in names if not n.endswith(("summary.png", "precision.png"))]
     if rest:
         lines += ["## Figures" + (" (quick run: format only, not results)" if quick else ""), ""]
         if any("gallery_" in n for n in rest):

@@ -46,6 +46,15 @@ def wilson(successes: int, n: int, confidence: float = 0.95) -> tuple[float, flo
     return successes / n, float(ci.low), float(ci.high)
 
 
+def fmt_ci(m: float, lo: float, hi: float, scale: float = 1.0, nd: int = 2) -> str:
+    """"m [lo, hi]", "m (n=1)" without an interval, "—" without a value."""
+    if math.isnan(m):
+        return "—"
+    if math.isnan(lo):
+        return f"{m * scale:.{nd}f} (n=1)"
+    return f"{m * scale:.{nd}f} [{lo * scale:.{nd}f}, {hi * scale:.{nd}f}]"
+
+
 def row_stats(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Aggregate the finished seeds of one (method, variant, target)."""
     s1 = [np.mean([e["success"] for e in r["episodes"]]) for r in runs]

@@ -8,7 +8,7 @@ those agree (to 1e-6 m), so a change of the rule would show here as unpaired epi
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -220,14 +220,35 @@ def paired_section(grid: dict[str, Any], done: dict[tuple, dict], reference: tup
                 pr, unverified, mismatched = pairs(a, b)
                 if not pr:
                     continue
-                ds = [float(x["success"]) - float(y["success"]) for x, y in pr]
-                dm = [x["steps"] - y["steps"] for x, y in pr if x["success"] and y["success"]]
-                note = f"{len(pr)}" + (f" ({unverified} unverifiable)" if unverified else "") + \
-                    (f" ({mismatched} mismatched, left out)" if mismatched else "")
-                success = _ci(ds, 100, 0, bounds=(-1.0, 1.0))
-                lines.append("| " + " | ".join([method_label(grid, method), variant, task, success,
-                                                _ci([float(x) for x in dm]) + f" (n={len(dm)})", note]) + " |")
+                ds, dm = paired_differences(pr)
+                lines.append("| " + " | ".join([method_label(grid, method), variant, task,
+                                                *paired_texts(ds, dm, len(pr), unverified, mismatched)]) + " |")
     return lines + [""]
+
+
+def own_outcome(e: dict[str, Any]) -> tuple[bool, int | None]:
+    """An episode's (success, moves) as it ran: its own success and its moves."""
+    return bool(e["success"]), e["steps"]
+
+
+def paired_differences(pr: list[tuple[dict, dict]], outcome: Callable[[dict], tuple[bool, int | None]] = own_outcome
+                       ) -> tuple[list[float], list[float]]:
+    """(Δ success per pair, Δ moves per pair both solved) of paired episodes (``pairs``), each episode's (success,
+    moves) read by ``outcome`` (default: as it ran; the precision section: at a row's tolerance)."""
+    ds, dm = [], []
+    for x, y in pr:
+        (sx, mx), (sy, my) = outcome(x), outcome(y)
+        ds.append(float(sx) - float(sy))
+        if sx and sy:
+            dm.append(float(mx - my))
+    return ds, dm
+
+
+def paired_texts(ds: list[float], dm: list[float], n: int, unverified: int, mismatched: int) -> list[str]:
+    """The cells "Δ success [pp]", "Δ moves (both solved)", "pairs" of a paired row."""
+    note = f"{n}" + (f" ({unverified} unverifiable)" if unverified else "") + \
+        (f" ({mismatched} mismatched, left out)" if mismatched else "")
+    return [_ci(ds, 100, 0, bounds=(-1.0, 1.0)), _ci(dm) + f" (n={len(dm)})", note]
 
 
 def cell_minutes(grid: dict[str, Any], done: dict[tuple, dict], method: str, variant: str) -> tuple[float, bool]:

@@ -1,0 +1,217 @@
+"""The precision rows (compare.yaml's variants with a ``tolerance``, the `precise` ones): each read at its declared
+task tolerance, and at a ladder of mean-error tolerances, from its episodes' recorded errors after every move
+(``stats.success_move``), not from the episodes' own success (the tolerance the cell ran until).
+
+A planner's precise cell runs until 2 mm (or its max moves): its moves do not depend on the tolerance, so its episode
+holds the episode at every looser tolerance exactly. A learner's runs at its row tolerance (trained with it: its
+success bonus and episode end are there), so a tighter tolerance is read from moves that stop at the looser success.
+Per episode: a tolerance it got within is exact (the move is in the record); one it did not get within is exact too
+when the episode ran on to its max moves (or left the workspace), but not when it ended at its own success first: it
+might have got there had it gone on. Such an episode counts as a failure, and the row's figure at that tolerance is
+a lower bound (marked "≥" in the tables, an open marker in the figure).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .grid import method_label, row_tolerance
+from .stats import fmt_ci, success_move, t_interval, wilson
+from .summary import _episodes, pairs, paired_differences, paired_texts
+
+LADDER = (0.02, 0.01, 0.005, 0.002)      # m: the mean-error tolerances of the success-against-tolerance table
+REFERENCE = ("cem", "precise")           # the row the others are paired against
+DEFAULT_TOL = 0.01                       # m: the env's success_tol where a cell names none (params/cable.yaml)
+
+
+def precise_rows(grid: dict[str, Any]) -> list[tuple[str, str, tuple[float, float | None]]]:
+    """(method, variant, (mean, worst)) of every row that declares a tolerance, in the grid's order."""
+    return [(m, v, tol) for m, spec in grid["methods"].items() for v in spec["variants"]
+            if (tol := row_tolerance(grid, m, v)) is not None]
+
+
+def split_done(grid: dict[str, Any], done: list) -> tuple[list, list]:
+    """The finished cells [(cell, record)] as (those read at their own success, the precision rows')."""
+    flags = [row_tolerance(grid, c["method"], c["variant"]) is not None for c, _ in done]
+    return [x for x, f in zip(done, flags) if not f], [x for x, f in zip(done, flags) if f]
+
+
+def ran_until(grid: dict[str, Any], method: str, variant: str) -> tuple[float, float | None]:
+    """The (mean, worst or None) tolerance a row's cells ran until: a planner's --success-tol and
+    --success-worst-tol, a learner's success_tol and success_worst_tol (its variant's args and set), else the env's
+    1 cm and none."""
+    v = grid["methods"][method]["variants"][variant]
+    args, sets = v.get("args") or {}, v.get("set") or {}
+    mean = args.get("success-tol", sets.get("success_tol"))
+    worst = args.get("success-worst-tol", sets.get("success_worst_tol"))
+    return float(DEFAULT_TOL if mean is None else mean), None if worst is None else float(worst)
+
+
+def length(x: float) -> str:
+    """A tolerance as the report names it: "2 cm", "5 mm", "2.5 mm"."""
+    cm = round(x * 100, 9)
+    return f"{cm:g} cm" if cm >= 1 and cm == int(cm) else f"{round(x * 1000, 9):g} mm"
+
+
+def tolerance_text(mean: float, worst: float | None) -> str:
+    """"5 mm, worst node 2 cm" (or the mean alone)."""
+    return length(mean) + ("" if worst is None else f", worst node {length(worst)}")
+
+
+def episode_at(e: dict[str, Any], tol: float, worst: float | None = None) -> tuple[int | None, bool]:
+    """(the move at which an episode is within (``tol``, ``worst``), or None; whether that answer is exact): not
+    exact where the episode got no move within it but ended at its own success first (it might have got there had
+    it gone on)."""
+    if "errors" not in e:
+        raise ValueError("a precision row's episode has no recorded errors after each move (a record made before "
+                         "they were kept): it cannot be read at another tolerance")
+    k = success_move(e["errors"], e.get("worst_errors"), tol, worst)
+    return k, k is not None or not e["success"]
+
+
+def point(runs: list[list[dict]], tol: float, worst: float | None = None) -> dict[str, Any]:
+    """A row's success at (``tol``, ``worst``) from its per-seed episode lists: per-seed rates' t-interval, the
+    pooled Wilson interval, the mean moves of the episodes within it (and their number), and how many episodes'
+    answers are not exact (``censored``: then the rates are lower bounds)."""
+    rates, moves, censored = [], [], 0
+    for eps in runs:
+        found = [episode_at(e, tol, worst) for e in eps]
+        rates.append(float(np.mean([k is not None for k, _ in found])))
+        moves += [k for k, _ in found if k is not None]
+        censored += sum(not exact for _, exact in found)
+    n = sum(len(eps) for eps in runs)
+    return {"seeds": len(runs), "episodes": n, "rate": t_interval(rates, (0.0, 1.0)), "pooled": wilson(len(moves), n),
+            "moves": float(np.mean(moves)) if moves else float("nan"), "solved": len(moves), "censored": censored}
+
+
+def _runs(episodes: dict[tuple[int, int], dict]) -> list[list[dict]]:
+    seeds = sorted({s for s, _ in episodes})
+    return [[episodes[k] for k in sorted(episodes) if k[0] == s] for s in seeds]
+
+
+def precision_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str, Any]]:
+    """Per precision row and task with finished cells (row, then task, in the grid's order): its episodes, at its
+    tolerance and at each ``LADDER`` tolerance of the mean."""
+    rows = []
+    for method, variant, (tol, worst) in precise_rows(grid):
+        v = grid["methods"][method]["variants"][variant]
+        for task in [t for t in grid["targets"] if t in v.get("targets", grid["targets"])]:
+            eps = _episodes(grid, done, method, variant, task, task)
+            if not eps:
+                continue
+            runs = _runs(eps)
+            rows.append({"method": method, "variant": variant, "task": task, "tolerance": (tol, worst),
+                         "ran_until": ran_until(grid, method, variant), "episodes": eps,
+                         "at_tolerance": point(runs, tol, worst),
+                         "ladder": [point(runs, t) for t in LADDER]})
+    return rows
+
+
+def _share(p: dict[str, Any]) -> str:
+    """"≥ 85 % · 12.3" (success over all episodes, ≥ where a lower bound; mean moves of the episodes within)."""
+    moves = "—" if not p["solved"] else f"{p['moves']:.1f}"
+    return ("≥ " if p["censored"] else "") + f"{100 * p['solved'] / p['episodes']:.0f} % · {moves}"
+
+
+def _bound(p: dict[str, Any], text: str) -> str:
+    return f"≥ {text} ({p['censored']} ended at their own success first)" if p["censored"] else text
+
+
+def _worst_at_success(row: dict[str, Any]) -> str:
+    """The worst node's error [mm] at the move each episode got within the row's tolerance: median; 90th percentile
+    (n)."""
+    tol, worst = row["tolerance"]
+    w = []
+    for e in row["episodes"].values():
+        k, _ = episode_at(e, tol, worst)
+        if k is not None and e.get("worst_errors"):
+            w.append(1000 * e["worst_errors"][k])
+    if not w:
+        return "—"
+    return f"{np.median(w):.1f}; {np.percentile(w, 90):.1f} (n={len(w)})"
+
+
+def precision_section(grid: dict[str, Any], done: dict[tuple, dict], figure: str | None = None,
+                      reference: tuple[str, str] = REFERENCE) -> list[str]:
+    """The report's precision section ([] without a finished precision cell): per precision row and task, success and
+    moves at the row's tolerance, paired against ``reference`` on the same episodes, and the worst node's error at
+    success; then success against the mean-error tolerance (``LADDER``) and the figure ``figure`` (a path for the
+    markdown link)."""
+    rows = precision_data(grid, done)
+    if not rows:
+        return []
+    has_reference = reference[1] in grid["methods"].get(reference[0], {}).get("variants", {})
+    ref = "/".join(reference)
+    ladder = [f"mean < {length(t)}" for t in LADDER]
+    tolerances = {r["tolerance"] for r in rows}
+    title = tolerance_text(*next(iter(tolerances))) if len(tolerances) == 1 else "each row's tolerance"
+    lines = [f"## Precision: success at {title}", "",
+             "The precision rows (compare.yaml's `precise` variants, each with a declared `tolerance`), read at that "
+             "tolerance from their episodes' recorded mean and worst node errors after each move "
+             "(`stats.success_move`), not from the episodes' own success. **ran until**: the tolerance the cells ran "
+             "with: a planner's moves do not depend on it (it replans each move, re-seeded per episode), so its "
+             "episode run until a tighter one holds the episode at every looser one exactly; a learner is trained "
+             "and evaluated at the row's tolerance (its success bonus and episode end are there). **success**: "
+             "within the row's tolerance at some move, t-interval over seeds; Wilson pooled. **moves**: mean first move within it, over the episodes "
+             "that got there. **Δ vs " + ref + "**: paired on the same episodes (same seed and index, checked as in "
+             f"the paired section) against {ref} ({method_label(grid, reference[0])}) at the row's tolerance; Δ "
+             "moves over the episodes both got within it. **worst node at success**: the worst node's error at that "
+             "move, over the episodes that got there. **≥**: a lower bound: some episodes ended at their own success "
+             "(a looser tolerance) before getting within this one, and count as failures.", "",
+             "| method | variant | task | tolerance | ran until | seeds × episodes | success: t-CI; Wilson | moves "
+             f"(mean; n) | Δ success vs {ref} [pp] | Δ moves vs {ref} (both within) | pairs | worst node at "
+             "success [mm]: median; 90th pct |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        p = row["at_tolerance"]
+        tol, worst = row["tolerance"]
+        success = _bound(p, f"{fmt_ci(*p['rate'])}; {fmt_ci(*p['pooled'])}")
+        moves = "—" if not p["solved"] else f"{p['moves']:.1f}; {p['solved']}"
+        paired = ["—", "—", "—"]
+        if (row["method"], row["variant"]) == tuple(reference):
+            paired = ["(reference)", "(reference)", "—"]
+        elif has_reference:
+            pr, unverified, mismatched = pairs(row["episodes"],
+                                               _episodes(grid, done, *reference, row["task"], row["task"]))
+            if pr:
+                def outcome(e, tol=tol, worst=worst):
+                    k, _ = episode_at(e, tol, worst)
+                    return k is not None, k
+                ds, dm = paired_differences(pr, outcome)
+                paired = paired_texts(ds, dm, len(pr), unverified, mismatched)
+        lines.append("| " + " | ".join([
+            method_label(grid, row["method"]), row["variant"], row["task"], tolerance_text(tol, worst),
+            tolerance_text(*row["ran_until"]), f"{p['seeds']} × {p['episodes'] // max(p['seeds'], 1)}", success,
+            moves, *paired, _worst_at_success(row)]) + " |")
+    lines += ["", "### Success against the tolerance", "",
+              "The same episodes at each tolerance of the mean error alone (no worst-node condition), and at the "
+              "row's tolerance: success over all episodes · mean moves of those within it; **≥**: a lower bound (as "
+              "above).", "",
+              "| method | variant | task | ran until | " + " | ".join(ladder) + " | the row's tolerance |",
+              "|" + "---|" * (5 + len(ladder))]
+    for row in rows:
+        lines.append("| " + " | ".join([
+            method_label(grid, row["method"]), row["variant"], row["task"], tolerance_text(*row["ran_until"]),
+            *[_share(p) for p in row["ladder"]],
+            f"{_share(row['at_tolerance'])} ({tolerance_text(*row['tolerance'])})"]) + " |")
+    lines.append("")
+    if figure:
+        lines += [f"![precision]({figure})", ""]
+    return lines
+
+
+def short_label(grid: dict[str, Any], method: str, variant: str) -> str:
+    """A row's name in the figure: its variant's ``short``, else its method's, else the method's key."""
+    spec = grid["methods"][method]
+    return spec["variants"][variant].get("short") or spec.get("short") or method
+
+
+def ladder_points(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str, Any]]:
+    """The figure's points: per precision row and task, success at each ``LADDER`` tolerance and whether it is
+    exact."""
+    return [{"label": short_label(grid, r["method"], r["variant"]),
+             "task": r["task"], "tols": list(LADDER),
+             "success": [p["solved"] / p["episodes"] for p in r["ladder"]],
+             "exact": [not p["censored"] for p in r["ladder"]], "seeds": r["at_tolerance"]["seeds"]}
+            for r in precision_data(grid, done)]
