@@ -310,3 +310,10 @@ def test_the_precision_figure_is_drawn_and_linked(tmp_path):
     assert (tmp_path / "figures/precision.png").stat().st_size > 0 and "](figures/precision.png)" in md
     assert md.count("](figures/precision.png)") == 1                          # in its section, not again below
 
+
+def test_main_grid_runs_the_precise_rows():
+    script = (ROOT / "benchmarks/main_grid.sh").read_text()
+    line, = [x for x in script.splitlines() if "precise" in x and not x.lstrip().startswith("#")]
+    rows = line.split("--rows", 1)[1].split()
+    assert sorted(rows) == sorted(f"{m}/precise" for m in PRECISE)
+    assert line.split()[:3] == ["nice", "-n", "10"] and line.split()[3] == "$C"       # as the script's other runs
