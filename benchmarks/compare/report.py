@@ -162,7 +162,7 @@ def _definitions(grid: dict[str, Any], loaded: list) -> list[str]:
 
 
 def _outside_main_cost(grid: dict[str, Any], loaded: list) -> str:
-    """What the cells not run outside the main grid (the secondary rows and the named lines) would cost."""
+    """What the cells not run outside the main grid (the secondary rows, the precision rows and the named lines) would cost."""
     main = grid.get("main") or {}
     rows = set(main_rows(grid)) | set(main_rows(grid, image=True))
     done = {(c["method"], c["variant"], c["target"], c["seed"]): r for c, r in loaded if r is not None}
@@ -172,7 +172,7 @@ def _outside_main_cost(grid: dict[str, Any], loaded: list) -> str:
         return "Every cell outside the main grid has run."
     minutes = [cell_minutes(grid, done, c["method"], c["variant"])[0] for c in left]
     known = [m for m in minutes if not math.isnan(m)]
-    return (f"Of them, {len(left)} are outside the main grid (the secondary rows and the named lines): ≈ "
+    return (f"Of them, {len(left)} are outside the main grid (the secondary rows, the precision rows and the named lines): ≈ "
             f"{sum(known) / 60:.1f} CPU-hours at their rows' minutes per cell (measured, else the grid's `cpu_min`)"
             + (f", {len(minutes) - len(known)} cell(s) unpriced" if len(known) < len(minutes) else "") + ".")
 
