@@ -232,8 +232,8 @@ def test_partial_report_names_the_cells_not_run(quick, tmp_path):
     rows = set(main["rows"]) | set(main.get("image_rows", []))
     outside = [c for c in compare.build_cells(full, cells_dir)
                if f"{c['method']}/{c['variant']}" not in rows or c["target"] not in main["targets"]]
-    assert re.search(rf"Of them, {len(outside) - 2} are outside the main grid \(the secondary rows, the precision rows and the named "
-                     r"lines\): ≈ \d+\.\d CPU-hours", md)
+    assert re.search(rf"Of them, {len(outside) - 2} are outside the main grid \(the secondary rows, the precision "
+                     r"rows and the named lines\): ≈ \d+\.\d CPU-hours", md)
     budgets = " ".join(full["budgets"].split())                # the grid's own budget statement, reflowed
     assert "measure early learning" in budgets and f"**Budgets.** {budgets}" in md
 
