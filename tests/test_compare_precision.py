@@ -317,3 +317,12 @@ def test_main_grid_runs_the_precise_rows():
     rows = line.split("--rows", 1)[1].split()
     assert sorted(rows) == sorted(f"{m}/precise" for m in PRECISE)
     assert line.split()[:3] == ["nice", "-n", "10"] and line.split()[3] == "$C"       # as the script's other runs
+
+
+def test_a_gallery_panel_shows_the_final_mean_and_worst_node_error():
+    import numpy as np
+    from benchmarks.compare.figures import final_errors
+    target = np.array([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0], [0.3, 0.0]])
+    final = target + np.array([[0.0, 0.002], [0.0, 0.0], [0.0, 0.0], [0.0, -0.002]]) + 5.0   # moved: ignored
+    # centroid unchanged by the +-2 mm pair: node errors 2, 0, 0, 2 mm
+    assert final_errors(final, target) == "1.0 / 2.0 mm"

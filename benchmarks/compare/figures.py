@@ -229,9 +229,17 @@ def _gallery_panels(grid: dict[str, Any], done: list, target: str) -> list[tuple
     return out
 
 
+def final_errors(final: np.ndarray, target: np.ndarray) -> str:
+    """A gallery panel's caption: the mean and the worst node's error [mm] of a final shape against its target,
+    centroids aligned as the task's errors (diffdlo.rewards.node_errors)."""
+    node = np.linalg.norm((final - final.mean(0)) - (target - target.mean(0)), axis=1)
+    return f"{node.mean() * 1e3:.1f} / {node.max() * 1e3:.1f} mm"
+
+
 def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
     """Start (grey), final shape (blue) and target (dashed, at the final shape's centroid: the error ignores
-    translation) of each seed's first episode, a row per method; every panel the same view and scale, and the same
+    translation) of each seed's first episode, with its final mean and worst node error (``final_errors``), a row
+    per method; every panel the same view and scale, and the same
     episode in each column (the episodes are paired) around that column's centre. The view holds 98 % of the drawn
     points, so one rope that drifted off does not shrink every other to a sliver; what lies beyond it is cut at the
     panel's edge."""
@@ -275,9 +283,11 @@ def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
             ax.plot(*start.T, color="0.7", lw=1)
             ax.plot(*tgt.T, "k--", lw=1)
             ax.plot(*final.T, color="tab:blue", lw=1.5)
+            ax.text(0.03, 0.03, final_errors(final, tgt), transform=ax.transAxes, fontsize=6, color="0.3")
         axes[i, 0].set_ylabel(label, fontsize=7, rotation=0, ha="right", va="center")
-    fig.suptitle(f"{target}: start (grey), final shape (blue), target (dashed; at the final shape's centroid)\n"
-                 f"view ±{lim:.2f} m in every panel (a column: one episode, one centre)"
+    fig.suptitle(f"{target}: start (grey), final shape (blue), target (dashed; at the final shape's centroid); "
+                 f"final error, mean / worst node [mm]\nview ±{lim:.2f} m in every panel (a column: one episode, one "
+                 f"centre)"
                  + ("; shapes beyond it are cut" if cut else "") + note, fontsize=8)
     fig.subplots_adjust(top=1 - 0.75 / height, bottom=0.2 / height, left=0.2, right=0.98)
     return fig
