@@ -25,7 +25,11 @@ BASE = {"cem": "default", "gradient": "default", "ppo": "fewest_moves", "pets": 
 # ---------------------------------------------------------------------- the grid's precision rows
 def test_each_precise_row_declares_the_task_tolerance_on_the_two_random_tasks():
     grid = compare.load_grid()
-    assert [(m, v) for m, v, _ in precise_rows(grid)] == [(m, "precise") for m in PRECISE]
+    assert [(m, v) for m, v, _ in precise_rows(grid)] == [("cem", "precise"), ("cem", "precise_image")] + [
+        (m, "precise") for m in PRECISE[1:]]
+    assert row_tolerance(grid, "cem", "precise_image") == (0.005, 0.02)
+    assert ran_until(grid, "cem", "precise_image") == (0.002, None)
+    assert grid["methods"]["cem"]["variants"]["precise_image"]["args"]["perception"] == "models/perception64.pt"
     for method in PRECISE:
         v = grid["methods"][method]["variants"]["precise"]
         assert row_tolerance(grid, method, "precise") == (0.005, 0.02)
@@ -35,7 +39,7 @@ def test_each_precise_row_declares_the_task_tolerance_on_the_two_random_tasks():
         assert ran_until(grid, method, "precise") == (0.005, 0.02)
     assert ran_until(grid, "cem", "default") == (0.01, None)                          # the env's 1 cm
     assert all(row_tolerance(grid, m, v) is None for m, spec in grid["methods"].items() for v in spec["variants"]
-               if v != "precise")
+               if v not in ("precise", "precise_image"))
 
 
 def planner_args(cell):
