@@ -27,8 +27,8 @@ settings, costs and per-episode outcomes) into ``docs/results/cells.jsonl``, fro
 t-interval over seeds and a Wilson score interval over the pooled episodes; paired t-intervals against CEM.
 Success at 1 cm: the episode terminated with shape_error < 0.01 m (the env's success). Success at 2 cm: the
 episode's last shape_error < 2 cm; an episode ends at its first move under 1 cm or after max-steps moves, for
-planners and learners alike, so this is "ended within 2 cm". Planners also get "moves to 2 cm" from their per-move
-``errors`` (first move under 2 cm).
+planners and learners alike, so this is "ended within 2 cm". Records with per-move ``errors`` (planners; learners'
+since they keep them) also get "moves to 2 cm" (the first move under 2 cm).
 
 Modules: grid (the YAML, cells, command lines), runner (subprocesses, resume, Ray), processes (the cells'
 process groups, stopping them), settings (a finished cell's settings against the grid's), records (the committed

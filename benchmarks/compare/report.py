@@ -55,7 +55,7 @@ def update_readme(path: Path | str, block: str) -> bool:
 
 COLUMNS = ["method", "variant", "seeds × episodes", "success @1 cm: t-CI over seeds; Wilson pooled",
            "success @2 cm (final error < 2 cm): t-CI; Wilson", "final error [cm], t-CI",
-           "moves to success (mean; n) (planners: to 2 cm)", "env steps / cell", "sim evals / episode",
+           "moves to success (mean; n) (to 2 cm where recorded)", "env steps / cell", "sim evals / episode",
            "wall s / cell (s / move)", "command"]
 
 
@@ -134,8 +134,9 @@ def _definitions(grid: dict[str, Any], loaded: list) -> list[str]:
               "**CIs (95 %)**: first a t-interval over seeds (mean of per-seed rates ± t₀.₉₇₅,ₙ₋₁·sd/√n, clipped "
               "to [0, 1]; `n=1` when only one seed), then a Wilson score interval over the pooled episodes. "
               "**Final error**: per-seed mean of the episodes' last shape error, t-interval over seeds. "
-              "**Moves to success**: mean moves of the successful episodes (n = their number); planners "
-              "also: mean first move under 2 cm over the episodes that got there (from their per-move errors). "
+              "**Moves to success**: mean moves of the successful episodes (n = their number); where the "
+              "episodes record their per-move errors (every planner; the learners' newer records) also: mean "
+              "first move under 2 cm over the episodes that got there. "
               "**Env steps**: learners: training env transitions actually run (the budget, rounded up to a whole "
               "batched step of the run's ropes: PPO cuts its last rollout short); planners: moves executed over the "
               "cell's episodes; APG (a policy trained through the simulator's gradients) adds in brackets the "
