@@ -110,7 +110,7 @@ def _summary(plt, grid: dict[str, Any], done: dict[tuple, dict], note: str):
 
 def _precision(plt, points: list[dict[str, Any]], note: str):
     """Success against the mean-error tolerance, a panel per task, a line per precision row: filled markers exact,
-    open ones lower bounds (some episodes ended at their own, looser success first)."""
+    open ones lower bounds (some episodes ended at their own, looser success first), reached by a dotted line."""
     from matplotlib.lines import Line2D
     from matplotlib.ticker import NullFormatter
 
@@ -122,7 +122,9 @@ def _precision(plt, points: list[dict[str, Any]], note: str):
     for ax, task in zip(axes[0], tasks):
         for p in (p for p in points if p["task"] == task):
             x, y = 1000 * np.array(p["tols"]), 100 * np.array(p["success"])
-            ax.plot(x, y, ls="-", lw=1, color=style[p["label"]]["color"])
+            for i in range(len(x) - 1):                 # dotted into a lower bound: not a measured fall
+                ax.plot(x[i:i + 2], y[i:i + 2], ls="-" if p["exact"][i + 1] else ":", lw=1,
+                        color=style[p["label"]]["color"])
             for xi, yi, exact in zip(x, y, p["exact"]):
                 ax.plot(xi, yi, ms=7, ls="none", mfc=None if exact else "none", **style[p["label"]])
         ticks = sorted({1000 * t for p in points for t in p["tols"]})
@@ -140,7 +142,7 @@ def _precision(plt, points: list[dict[str, Any]], note: str):
     handles = [Line2D([], [], ms=7, lw=1, **style[label]) for label in labels]
     fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=2, frameon=False)
     fig.suptitle("Precision rows: success against the tolerance of the mean error, the same episodes at each\n"
-                 f"(open markers: lower bounds, some episodes ended at their own looser success first){note}",
+                 f"(open markers, dotted: lower bounds, some episodes ended at their own looser success first){note}",
                  fontsize=9)
     fig.subplots_adjust(bottom=0.1 + 0.06 * ((len(labels) + 1) // 2), top=0.84, wspace=0.08)
     return fig
