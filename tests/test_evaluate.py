@@ -151,3 +151,39 @@ def test_broken_checkpoints_give_one_clear_error(runs, tmp_path, capsys):
     assert evaluate_cli.main([str(truncated.parent)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "not a readable checkpoint" in err
+
+
+# ---------------------------------------------------------------- benchmarks.studies.model_error (issue 50)
+@pytest.mark.parametrize("name", ["planet", "planet-latent"])
+def test_model_error_study_records_every_move_and_a_perfect_predictor_misses_nothing(name, runs):
+    from benchmarks.studies import model_error
+    from diffdlo.simulator import Simulator
+    res = model_error.closed_loop_moves(runs[name], episodes=3, seed=5)
+    task = agents.load_policy(runs[name]).config.task
+    tol = res["success_tol"]
+    assert tol == 0.01 and res["success_worst_tol"] is None           # the env's defaults: Table 2.1's 1 cm
+    per_episode = [sum(m["episode"] == i for m in res["moves"]) for i in range(3)]
+    assert all(1 <= n <= task.max_steps for n in per_episode)
+    for i, n in enumerate(per_episode):          # an episode stops at its first success, or at max_steps
+        errors = [m["error_after"] for m in res["moves"] if m["episode"] == i]
+        assert all(e >= tol for e in errors[:-1]) and (errors[-1] < tol or n == task.max_steps)
+    assert all(0 < m["miss_mean"] <= m["miss_worst"] for m in res["moves"])     # a learned model is never exact
+    assert sum(r["moves"] for r in res["buckets"]) == len(res["moves"])
+    # the simulator as the predictor: the moves are predicted exactly, so the bookkeeping is right
+    sim = Simulator(task.cable_params(), dtype=torch.float64)
+    exact = model_error.closed_loop_moves(runs[name], episodes=3, seed=5,
+                                          predict=lambda rope, node, drag: sim.move(rope.double(), node, drag.double()))
+    assert [m["error_before"] for m in exact["moves"]] == [m["error_before"] for m in res["moves"]]
+    assert max(m["miss_worst"] for m in exact["moves"]) < 1e-5
+    assert all(abs(m["predicted_error_after"] - m["error_after"]) < 1e-5 for m in exact["moves"])
+
+
+def test_model_error_study_refuses_a_run_without_a_model_of_node_positions(runs, capsys):
+    from benchmarks.studies import model_error
+    from conftest import cli_error
+    err = cli_error(model_error.main, [str(runs["sac"]), "--episodes", "2"], capsys)
+    assert str(runs["sac"]) in err and "sac" in err
+    err = cli_error(model_error.main, [str(runs["planet-rssm"])], capsys)
+    assert "'rssm'" in err
+    assert "--episodes must be at least 1, got 0" in cli_error(model_error.main, [str(runs["planet"]), "--episodes", "0"],
+                                                               capsys)
