@@ -1,6 +1,7 @@
 """agents.load_policy and python -m agents.tools.evaluate: a trained run's checkpoint acts on the gymnasium env, reproduces
 the run's own final evaluation, is evaluated and watched from the command line; broken checkpoints are named."""
 import json
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -13,6 +14,7 @@ from agents import planet, ppo, sac
 from agents.common.checkpoints import CHECKPOINT
 from agents.common.config import load_config
 from agents.common.evaluation import evaluate
+from conftest import cli_error
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -122,7 +124,9 @@ def test_evaluate_command_default_out_and_bad_flags(runs, capsys):
     assert (runs["ppo"] / f"evaluate-random-s{cfg.run.eval_seed}" / "results.json").exists()
     capsys.readouterr()
     for bad, named in ((["--episodes", "0"], "'0'"), (["--target", "zigzag"], "zigzag"), (["--seed", "x"], "'x'"),
-                       (["--bogus"], "--bogus")):
+                       (["--bogus"], "--bogus"), (["--success-tol", "-0.01"], "'-0.01'"),
+                       (["--success-tol", "nan"], "'nan'"), (["--success-worst-tol", "inf"], "'inf'"),
+                       (["--success-worst-tol", "0"], "'0'"), (["--max-steps", "0"], "'0'")):
         assert evaluate_cli.main([str(runs["ppo"]), *bad]) == 2, bad
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and named in err, err
@@ -153,6 +157,46 @@ def test_broken_checkpoints_give_one_clear_error(runs, tmp_path, capsys):
     assert len(err.splitlines()) == 1 and "not a readable checkpoint" in err
 
 
+def test_evaluate_at_another_tolerance_continues_the_runs_own_episodes(runs, capsys):
+    """PlaNet's planner does not look at the tolerance: evaluated until 2 mm over 6 moves, each episode begins with
+    the run's own final-evaluation episode (until 1 cm, 4 moves), move for move."""
+    cfg = agents.load_policy(runs["planet"]).config
+    assert evaluate_cli.main([str(runs["planet"]), "--success-tol", "0.002", "--success-worst-tol", "0.005",
+                              "--max-steps", "6", "--no-gif"]) == 0
+    assert "at 2 mm (5 mm worst node)" in capsys.readouterr().out
+    res = json.loads((runs["planet"] / f"evaluate-random-s{cfg.run.eval_seed}-tol2mm-worst5mm" / "results.json")
+                     .read_text())
+    assert (res["success_tol"], res["success_worst_tol"], res["max_steps"]) == (0.002, 0.005, 6)
+    own = json.loads((runs["planet"] / "results.json").read_text())["episodes"]
+    for mine, theirs in zip(res["episodes"], own, strict=True):
+        assert mine["success"] == (mine["final_error"] < 0.002 and mine["worst_errors"][-1] < 0.005)
+        assert mine["success"] or mine["steps"] == 6
+        assert mine["steps"] >= theirs["steps"]
+        assert mine["errors"][:len(theirs["errors"])] == pytest.approx(theirs["errors"], abs=1e-6)
+
+
+def test_tolerance_ladder_is_exact_at_every_rung_and_agrees_with_the_runs_own_success(runs, tmp_path, capsys):
+    from benchmarks.compare.stats import success_move
+    from benchmarks.studies import tolerance_ladder
+    assert tolerance_ladder.group_of(Path("runs/compare/pets/precise/random/seed3")) == \
+        ("runs/compare/pets/precise/random", "seed3")
+    out = tmp_path / "ladder"
+    assert tolerance_ladder.main([str(runs["planet"]), "--until", "0.002", "--out", str(out)]) == 0
+    assert "< 2 mm" in capsys.readouterr().out
+    (row,) = json.loads((out / "results.json").read_text())["rows"]
+    assert [r["tol"] for r in row["ladder"]] == [0.02, 0.01, 0.005, 0.002]
+    assert not any(r["lower_bound"] for r in row["ladder"])
+    (evaluation,) = out.glob("*/run/results.json")
+    assert json.loads(evaluation.read_text())["success_tol"] == 0.002
+    own = json.loads((runs["planet"] / "results.json").read_text())["episodes"]     # ran until 1 cm: exact there
+    at_1cm = next(r for r in row["ladder"] if r["tol"] == 0.01)
+    assert at_1cm["success"] == np.mean([success_move(e["errors"], None, 0.01) is not None for e in own])
+    assert tolerance_ladder.main([str(runs["planet"]), "--out", str(out)]) == 2       # kept without --overwrite
+    assert "--overwrite" in capsys.readouterr().err
+    assert "--until must be a positive number [m], got -1.0" in cli_error(
+        tolerance_ladder.main, [str(runs["planet"]), "--until", "-1", "--out", str(tmp_path / "x")], capsys)
+
+
 # ---------------------------------------------------------------- benchmarks.studies.model_error (issue 50)
 @pytest.mark.parametrize("name", ["planet", "planet-latent"])
 def test_model_error_study_records_every_move_and_a_perfect_predictor_misses_nothing(name, runs):
@@ -180,7 +224,6 @@ def test_model_error_study_records_every_move_and_a_perfect_predictor_misses_not
 
 def test_model_error_study_refuses_a_run_without_a_model_of_node_positions(runs, capsys):
     from benchmarks.studies import model_error
-    from conftest import cli_error
     err = cli_error(model_error.main, [str(runs["sac"]), "--episodes", "2"], capsys)
     assert str(runs["sac"]) in err and "sac" in err
     err = cli_error(model_error.main, [str(runs["planet-rssm"])], capsys)

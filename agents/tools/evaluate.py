@@ -2,6 +2,7 @@
 
     python -m agents.tools.evaluate runs/sac                              # the run's task, its eval episodes and seed
     python -m agents.tools.evaluate runs/sac --target arc_file.npy --episodes 50 --seed 3 --out runs/sac-arc
+    python -m agents.tools.evaluate runs/planet --success-tol 0.002 --success-worst-tol 0.01   # at another tolerance
 
 Writes into --out (default RUN_DIR/evaluate-<target>-s<seed>; never over an earlier evaluation unless --overwrite):
 ``results.json`` (success_rate, the episodes' success/steps/final_error/target_name and their errors after each
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -53,6 +55,17 @@ def count(text: str, least: int = 1) -> int:
     return v
 
 
+def tolerance(text: str) -> float:
+    """A tolerance flag's value: a positive finite number [m]; anything else is named in the one-line error."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number [m], got {text!r}")
+    return v
+
+
 def make_parser() -> OneLineParser:
     ap = OneLineParser(prog="python -m agents.tools.evaluate", description=__doc__.split("\n\n")[0])
     ap.add_argument("run_dir", help="a learner's --out folder (its checkpoint.pt), or a checkpoint file")
@@ -62,7 +75,13 @@ def make_parser() -> OneLineParser:
                          "(default: the run's)")
     ap.add_argument("--seed", type=lambda t: count(t, least=0), default=None,
                     help="start seed of the episodes (default: the run's eval_seed)")
-    ap.add_argument("--out", default=None, help="output folder (default: RUN_DIR/evaluate-<target>-s<seed>)")
+    ap.add_argument("--success-tol", type=tolerance, default=None, metavar="M",
+                    help="success: mean node error below M [m] (default: the run's)")
+    ap.add_argument("--success-worst-tol", type=tolerance, default=None, metavar="M",
+                    help="success also needs the worst node's error below M [m] (default: the run's)")
+    ap.add_argument("--max-steps", type=count, default=None, metavar="K", help="moves per episode (default: the run's)")
+    ap.add_argument("--out", default=None, help="output folder (default: RUN_DIR/evaluate-<target>-s<seed>, with "
+                                                "-tol<M>mm[-worst<W>mm] when a tolerance is given)")
     ap.add_argument("--overwrite", action="store_true", help="replace an earlier evaluation in --out")
     ap.add_argument("--no-gif", action="store_true", help="skip episodes.gif")
     ap.add_argument("--gif-episodes", type=count, default=3, help="episodes shown in the GIF (default 3)")
@@ -160,23 +179,30 @@ def evaluate_run(args: argparse.Namespace) -> int:
         raise ValueError(f"--target {args.target!r}: {exc}") from None
     episodes = cfg.run.eval_episodes if args.episodes is None else args.episodes
     seed = cfg.run.eval_seed if args.seed is None else args.seed
+    changes = {k: v for k, v in (("success_tol", args.success_tol), ("success_worst_tol", args.success_worst_tol),
+                                 ("max_steps", args.max_steps)) if v is not None}
+    policy.task(**changes)                  # checked before anything is written
     label = target_label(spec)
-    out = Path(args.out) if args.out else policy.checkpoint.parent / f"evaluate-{label}-s{seed}"
+    tol = "".join(f"-{name}{v * 1000:g}mm" for name, v in (("tol", args.success_tol),
+                                                           ("worst", args.success_worst_tol)) if v is not None)
+    out = Path(args.out) if args.out else policy.checkpoint.parent / f"evaluate-{label}-s{seed}{tol}"
     check_fresh_out(out, args.overwrite, "an earlier evaluation")
 
     with out_lock(out), torch_threads(cfg.run.threads):
-        env = policy.make_env(num_envs=min(episodes, 32), target=spec)
+        env = policy.make_env(num_envs=min(episodes, 32), target=spec, **changes)
         recorder = EpisodeRecorder(env.core, 0 if args.no_gif else args.gif_episodes)
         env = TrainEnv(recorder, device=env.device)
         acting = policy.batched(env)
         if args.rollouts:
-            acting = PolicyRollouts(acting, policy.env_options(), args.rollouts, args.rollout_moves, seed=seed,
+            acting = PolicyRollouts(acting, policy.env_options(**changes), args.rollouts, args.rollout_moves, seed=seed,
                                     env_device=env.core.device, learner_device=env.device)
         t0 = time.perf_counter()
         result = evaluate(acting, env, episodes, seed=seed)
-        task = dataclasses.replace(cfg.task, target=spec if isinstance(spec, str) else label)
+        task = dataclasses.replace(policy.task(**changes), target=spec if isinstance(spec, str) else label)
         write_results(out, policy.algo, task, seed, result, env_steps=policy.step, wall_s=time.perf_counter() - t0,
                       extra={"step": policy.step, "checkpoint": str(policy.checkpoint),
+                             "success_tol": env.core.success_tol, "success_worst_tol": env.core.success_worst_tol,
+                             "max_steps": env.core.max_steps,
                              "mean_final_error": result["mean_final_error"], "deterministic": True,
                              **(acting.stats() if args.rollouts else {})})
         gif = None if args.no_gif else write_gif(out / "episodes.gif", recorder, result["targets"],
@@ -184,7 +210,9 @@ def evaluate_run(args: argparse.Namespace) -> int:
     solved = [e["steps"] for e in result["episodes"] if e["success"]]
     moves = f", {sum(solved) / len(solved):.2f} moves to success" if solved else ""
     how = f" acting by {args.rollouts} rollouts of {args.rollout_moves} moves" if args.rollouts else ""
-    print(f"{policy.algo} at step {policy.step}{how}: success rate {result['success_rate']:.2f}{moves} over "
+    at = f" at {env.core.success_tol * 1000:g} mm" + (f" ({env.core.success_worst_tol * 1000:g} mm worst node)"
+                                                     if env.core.success_worst_tol else "")
+    print(f"{policy.algo} at step {policy.step}{how}: success rate{at} {result['success_rate']:.2f}{moves} over "
           f"{episodes} episodes on {label} (seed {seed}) -> {out}/results.json, eval_episodes.png"
           + (", episodes.gif" if gif else ""))
     return 0

@@ -166,21 +166,33 @@ class Policy:
         self._moves = 0                                                   # since reset(): the one-rope env's steps
 
     # ------------------------------------------------------------------ envs of the run's task
-    def env_options(self) -> EnvOptions:
-        """The run's task as the env's options (``BatchedShapeControl(B, policy.env_options())``)."""
-        return self.config.task.env_options()
+    def task(self, **changes: Any):
+        """The run's task (its TaskOptions), with ``changes`` to its fields (e.g. success_tol=0.002, max_steps=40),
+        checked: a bad value raises ValueError naming the field."""
+        if not changes:
+            return self.config.task
+        task = dataclasses.replace(self.config.task, **changes)
+        task.check()
+        return task
+
+    def env_options(self, **changes: Any) -> EnvOptions:
+        """The run's task as the env's options (``BatchedShapeControl(B, policy.env_options())``), with ``changes``
+        as for ``task``."""
+        return self.task(**changes).env_options()
 
     def env_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for ``gym.make("DiffDLO/ShapeControl-v0", ...)``: the run's task."""
         return self.env_options().keywords()
 
-    def make_env(self, num_envs: int | None = None, target: Any = None) -> TrainEnv:
+    def make_env(self, num_envs: int | None = None, target: Any = None, **changes: Any) -> TrainEnv:
         """The run's evaluation env (``num_envs`` default min(eval_episodes, 32), as the run's own), optionally with
-        another ``target`` spec (a name, family, (N, 2) array or .npy/.yaml path)."""
+        another ``target`` spec (a name, family, (N, 2) array or .npy/.yaml path) and ``changes`` to the task as
+        for ``task`` (another tolerance, episode length)."""
         cfg = self.config
-        task = cfg.task if target is None else dataclasses.replace(cfg.task, target=target)
+        task = self.task(**changes)
+        task = task if target is None else dataclasses.replace(task, target=target)
         n = min(cfg.run.eval_episodes, 32) if num_envs is None else num_envs
-        return make_env(task, cfg.run, cfg.task.cable_params(), n)
+        return make_env(task, cfg.run, task.cable_params(), n)
 
     # ------------------------------------------------------------------ acting
     def batched(self, env: TrainEnv | BatchedShapeControl | None = None) -> BatchedPolicy:
