@@ -12,8 +12,11 @@ report's, read by the report's own `precision.point`) has no lower bounds left, 
 --until is asked for.
 
 A world model planning with CEM (PlaNet's) and a policy (SAC, PPO, acting alone) choose their moves without looking
-at the tolerance, so these episodes are the run's episodes continued. A policy acting by rollouts scores its
-candidates by their moves to success, which depend on the tolerance: its episodes are not the run's.
+at the tolerance, so each episode holds the answer at every looser rung exactly. They are the run's final-evaluation
+episodes continued where the run evaluated only at its end; a run that evaluated before (the comparison's cells
+do) had moved its planner's CEM generators on, so the moves differ from its final evaluation's, and the looser
+rungs read a second sample of the same policy from the same start ropes. A policy acting by rollouts scores its
+candidates by their moves to success, which depend on the tolerance: its episodes are its own at --until.
 
 Runs named .../seedN are pooled by their parent folder (e.g. the comparison's runs/compare/pets/precise/random).
 Writes each evaluation to <out>/<group>/seedN/ and the table to <out>/results.json.
