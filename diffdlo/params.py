@@ -41,6 +41,9 @@ _LAYOUT = {
         "threshold": "settle_threshold", "check_every": "settle_check_every",
         "max_substeps": "settle_max_substeps",
     },
+    "contact": {
+        "rope_radius": "rope_radius", "stiffness": "contact_stiffness", "width": "contact_width",
+    },
     "env": {
         "sigma": "sigma", "action_scale": "action_scale", "workspace": "workspace",
         "max_steps": "max_episode_steps", "success_tol": "success_tol", "success_bonus": "success_bonus",
@@ -86,6 +89,10 @@ class CableParams:
     settle_threshold: float
     settle_check_every: int
     settle_max_substeps: int
+    # contact with pegs (diffdlo/contact.py)
+    rope_radius: float
+    contact_stiffness: float
+    contact_width: float
     # task (thesis Algorithms 1-2)
     sigma: float
     action_scale: float
@@ -107,14 +114,17 @@ class CableParams:
         """Mass of one node [kg]: the total mass shared equally."""
         return self.mass / self.n_nodes
 
-    def stability_margin(self) -> float:
+    def stability_margin(self, contact: bool = False) -> float:
         """dt^2 w_max^2 / limit of the semi-implicit Euler step with implicit damping; stable below 1.
 
         For a mode of angular frequency w the step is stable iff dt^2 w^2 < 2 (2 + dt k_d / m). w_max^2 is
-        bounded by the stiffest axial mode 4 k_s / m plus the stiffest bending mode 16 k_b / (l0^2 m).
+        bounded by the stiffest axial mode 4 k_s / m plus the stiffest bending mode 16 k_b / (l0^2 m), and with
+        ``contact`` (a move with pegs) plus 2 k_c / m: a node pressed into a peg by both of its links, each with
+        its share <= 1 of k_c. ``validate`` checks the rope's own margin; a move with pegs checks the contact's.
         """
         m = self.node_mass
-        w2 = (4.0 * self.k_s + 16.0 * self.k_b / self.rest_length ** 2) / m
+        w2 = (4.0 * self.k_s + 16.0 * self.k_b / self.rest_length ** 2
+              + (2.0 * self.contact_stiffness if contact else 0.0)) / m
         return self.dt ** 2 * w2 / (2.0 * (2.0 + self.dt * self.k_d / m))
 
 
@@ -147,6 +157,9 @@ _RANGES: dict[str, tuple[float, bool, str]] = {
     "settle_threshold": (0, True, ""),
     "settle_check_every": (1, True, ""),
     "settle_max_substeps": (0, True, ""),
+    "rope_radius": (0, False, ""),
+    "contact_stiffness": (0, False, "the pegs' penalty must push"),
+    "contact_width": (0, False, ""),
     "sigma": (0, True, ""),
     "action_scale": (0, False, ""),
     "max_episode_steps": (1, True, ""),
@@ -187,6 +200,17 @@ def validate(p: CableParams) -> None:
             f"cable parameter 'dt' = {p.dt} makes the integrator unstable with k_s={p.k_s}, k_b={p.k_b}, "
             f"k_d={p.k_d}, node mass={p.node_mass:.4g}: dt^2*w_max^2 is {margin:.3g}x the stability limit "
             f"(must be < 1); use a smaller dt")
+
+
+def check_contact_stability(p: CableParams) -> None:
+    """ParamsError naming the contact stiffness where pegs would make the integrator unstable (see
+    CableParams.stability_margin); called by every move and free evolution with pegs."""
+    margin = p.stability_margin(contact=True)
+    if margin >= 1.0:
+        raise ParamsError(
+            f"cable parameter 'contact_stiffness' = {p.contact_stiffness} N/m makes the integrator unstable with "
+            f"pegs (dt={p.dt}, k_s={p.k_s}, k_b={p.k_b}, k_d={p.k_d}, node mass={p.node_mass:.4g}): "
+            f"dt^2*w_max^2 is {margin:.3g}x the stability limit (must be < 1); use a softer contact or a smaller dt")
 
 
 def load_params(name_or_path: str | Path = "cable", **overrides: Any) -> CableParams:

@@ -10,11 +10,11 @@ from typing import Any
 
 import torch
 
-from . import control, shapes
+from . import contact, control, shapes
 from .backends import kernel, triton_kernel
 from .forces import energy, internal_forces
 from .integrate import max_speed, semi_implicit_step
-from .params import CableParams, load_params
+from .params import CableParams, check_contact_stability, load_params
 from .physics import Physics
 
 # A rope farther than this from the origin [m] has diverged (50x the thesis's 2 m workspace).
@@ -24,6 +24,9 @@ DIVERGENCE_RADIUS = 100.0
 # near it: after random 0.1 m moves the shortest link is ~90% of the rest length (default params, both controllers)
 # and ~10% with 1 m/s drags and no settling on a 6-node rope.
 MIN_STATE_LINK_FRACTION = 0.01
+# A start state may overlap a peg by at most the rope's radius (its axis outside the peg): the depth no move ends
+# deeper than (tests/test_contact.py, benchmarks/physics_checks.py), so a move's result is always a valid start.
+MAX_START_DEPTH_RADII = 1.0
 
 
 class SimulationError(RuntimeError):
@@ -46,6 +49,7 @@ class MoveInfo:
 
 BACKENDS = ("auto", "kernel", "torch", "triton")
 ENGINES = ("kernel", "triton", "torch")          # what runs the moves, in the order "auto" prefers them
+CONTACT_ENGINES = ("torch",)                     # the engines that run moves with pegs and the pin
 
 
 def _resolve_engine(params: CableParams, device: torch.device, backend: str) -> tuple[str, dict[str, str]]:
@@ -125,6 +129,11 @@ class Simulator:
         self.dtype = dtype
         self.backend = backend
         self.engine, self.why_not = _resolve_engine(params, self.device, backend)
+        # moves with pegs or a pin: the C++ kernel has contact and the pin; the Triton kernel not yet (eager path)
+        self.contact_engine = self.engine if self.engine in CONTACT_ENGINES else "torch"
+        if self.contact_engine != self.engine:
+            self.why_not["contact"] = (f"the {self.engine} engine has no pegs nor pin yet: moves and free evolution "
+                                       f"with pegs or a pin run the eager torch path")
 
     def __repr__(self) -> str:
         return (f"Simulator(n_nodes={self.params.n_nodes}, controller={self.params.controller!r}, "
@@ -167,6 +176,41 @@ class Simulator:
             raise ValueError(f"delta contains NaN or inf: {delta[~torch.isfinite(delta).all(-1)].tolist()}")
         return node.to(device=pos.device, dtype=torch.int64)
 
+    def _check_pegs(self, pos: torch.Tensor, pegs: Any) -> torch.Tensor | None:
+        """(B, K, 3) pegs, or None; a PegError names bad pegs, a ValueError a start state inside one."""
+        if pegs is None:
+            return None
+        check_contact_stability(self.params)
+        pegs = contact.check_pegs(pegs, pos.shape[0], self.dtype, self.device)
+        with torch.no_grad():
+            overlap = contact.overlap(pos.detach(), pegs, self.params.rope_radius)   # (B, L, K)
+            limit = MAX_START_DEPTH_RADII * self.params.rope_radius
+            if bool((overlap > limit).any()):
+                b, link, k = (int(i) for i in (overlap > limit).nonzero()[0])
+                raise ValueError(f"pos: rope {b}'s link {link}-{link + 1} lies {float(overlap[b, link, k]) * 1e3:.3g} "
+                                 f"mm deep in peg {k} {[round(v, 4) for v in pegs[b, k].tolist()]} (at most "
+                                 f"{limit * 1e3:.3g} mm, the rope's radius: its axis must be outside every peg)")
+        return pegs
+
+    def _check_pin(self, pin: Any, node: torch.Tensor) -> torch.Tensor | None:
+        """(B,) int64 pin (-1: none), or None; ValueError naming a pin out of range or on the grasped node."""
+        if pin is None:
+            return None
+        batch, n = node.shape[0], self.params.n_nodes
+        if not torch.is_tensor(pin) or pin.dtype not in (torch.int64, torch.int32):
+            raise TypeError(f"pin must be an integer tensor of shape ({batch},) (-1: no pin), got {pin!r}")
+        if pin.shape != (batch,):
+            raise ValueError(f"pin must have shape ({batch},) (-1: no pin), got {tuple(pin.shape)}")
+        pin = pin.to(device=node.device, dtype=torch.int64)
+        if ((pin < -1) | (pin >= n)).any():
+            bad = pin[(pin < -1) | (pin >= n)].tolist()
+            raise ValueError(f"pin node ids must be in [0, {n - 1}] or -1 for no pin, got {bad}")
+        if (pin == node).any():
+            bad = (pin == node).nonzero().flatten().tolist()
+            raise ValueError(f"pin must differ from the grasped node: ropes {bad} pin node "
+                             f"{pin[bad].tolist()} which they also grasp")
+        return pin
+
     def _check_finite(self, pos: torch.Tensor, where: str) -> None:
         with torch.no_grad():
             bad = ~torch.isfinite(pos).flatten(1).all(1) | (pos.abs().flatten(1).amax(1) > DIVERGENCE_RADIUS)
@@ -186,10 +230,24 @@ class Simulator:
         p = self.params
         return internal_forces(pos, p.rest_length, p.k_s, p.k_b)
 
+    def contact_energy(self, pos: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
+        """(B, N, 2), pegs (K, 3) or (B, K, 3) -> (B,) contact energy with the pegs [J] (diffdlo/contact.py)."""
+        p = self.params
+        pegs = contact.check_pegs(pegs, pos.shape[0], pos.dtype, pos.device)
+        return contact.energy(pos, pegs, p.rope_radius, p.contact_stiffness, p.contact_width)
+
+    def contact_forces(self, pos: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
+        """(B, N, 2), pegs (K, 3) or (B, K, 3) -> (B, N, 2) the pegs' forces on the nodes [N]."""
+        p = self.params
+        pegs = contact.check_pegs(pegs, pos.shape[0], pos.dtype, pos.device)
+        return contact.forces(pos, pegs, p.rope_radius, p.contact_stiffness, p.contact_width)
+
     def substep(self, pos: torch.Tensor, vel: torch.Tensor, external: torch.Tensor | None = None,
-                physics: Physics | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                physics: Physics | None = None, pegs: torch.Tensor | None = None,
+                link_weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """One integrator substep of dt (semi-implicit Euler, implicit damping); ``physics``: per-rope parameters
-        in place of the params' numbers."""
+        in place of the params' numbers; ``pegs`` (B, K, 3) push the links on the table (``link_weight`` (B, N-1)
+        1, 0 where lifted)."""
         p = self.params
         if physics is None:
             force = internal_forces(pos, p.rest_length, p.k_s, p.k_b)
@@ -197,14 +255,18 @@ class Simulator:
         else:
             force = internal_forces(pos, p.rest_length, physics.k_s, physics.k_b)
             node_mass, k_d = physics.node_mass(p.n_nodes), physics.k_d
+        if pegs is not None:
+            force = force + contact.forces(pos, pegs, p.rope_radius, p.contact_stiffness, p.contact_width,
+                                           link_weight)
         if external is not None:
             force = force + external
         return semi_implicit_step(pos, vel, force, p.dt, node_mass, k_d)
 
     def integrate(self, pos: torch.Tensor, vel: torch.Tensor | None, n_substeps: int,
-                  physics: Physics | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                  physics: Physics | None = None, pegs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Free evolution (no grasp) for n_substeps substeps of dt. Returns (pos, vel). ``physics``: per-rope
-        parameters (diffdlo.physics), differentiable (in the kernel too, where it applies)."""
+        parameters (diffdlo.physics), differentiable (in the kernel too, where it applies); ``pegs``: (K, 3) or
+        (B, K, 3) of (x, y, radius) [m] on the table."""
         self._check_state("pos", pos)
         if physics is not None:
             physics.check(pos.shape[0], self.params.n_nodes)
@@ -212,29 +274,33 @@ class Simulator:
         self._check_state("vel", vel)
         if not isinstance(n_substeps, int) or n_substeps < 0:
             raise ValueError(f"n_substeps must be a non-negative integer, got {n_substeps!r}")
-        if n_substeps > 0 and self.engine != "torch":
+        pegs = self._check_pegs(pos, pegs)
+        engine = self.engine if pegs is None else self.contact_engine
+        if n_substeps > 0 and engine != "torch":
             if self.engine == "kernel":
-                out = self._kernel_apply(pos, vel, None, None, None, None, physics, fixed_steps=n_substeps)
+                out = self._kernel_apply(pos, vel, None, None, None, None, physics, fixed_steps=n_substeps,
+                                         pegs=pegs)
             else:
                 out = self._triton_apply(pos, vel, None, None, None, n_substeps, physics)
             if bool(out.diverged.any()):
                 self._check_finite(out.pos, f"after {n_substeps} free substeps")
             return out.pos, out.vel
         for _ in range(n_substeps):
-            pos, vel = self.substep(pos, vel, physics=physics)
+            pos, vel = self.substep(pos, vel, physics=physics, pegs=pegs)
         self._check_finite(pos, f"after {n_substeps} free substeps")
         return pos, vel
 
-    def settle(self, pos: torch.Tensor, vel: torch.Tensor | None = None,
-               return_info: bool = False) -> torch.Tensor | tuple[torch.Tensor, MoveInfo]:
+    def settle(self, pos: torch.Tensor, vel: torch.Tensor | None = None, return_info: bool = False,
+               pegs: torch.Tensor | None = None) -> torch.Tensor | tuple[torch.Tensor, MoveInfo]:
         """Free evolution until each rope is at rest (the thesis's model.free); settled ropes stop changing."""
         batch = pos.shape[0] if torch.is_tensor(pos) and pos.ndim == 3 else 1
         node = torch.zeros(batch, dtype=torch.int64, device=self.device)
         delta = torch.zeros(batch, 2, dtype=self.dtype, device=self.device)
-        return self.move(pos, node, delta, vel=vel, return_info=return_info)
+        return self.move(pos, node, delta, vel=vel, return_info=return_info, pegs=pegs)
 
-    def move(self, pos: torch.Tensor, node: torch.Tensor, delta: torch.Tensor, *, vel: torch.Tensor | None = None,
-             return_info: bool = False, record_every: int = 0, physics: Physics | None = None,
+    def move(self, pos: torch.Tensor, node: torch.Tensor, delta: torch.Tensor, pegs: torch.Tensor | None = None,
+             pin: torch.Tensor | None = None, *, vel: torch.Tensor | None = None, return_info: bool = False,
+             record_every: int = 0, physics: Physics | None = None,
              differentiable_frames: bool = False) -> torch.Tensor | tuple[torch.Tensor, MoveInfo]:
         """Grasp ``node`` (B,), drag it by ``delta`` (B, 2) [m], release, and settle. Returns the new positions.
 
@@ -246,6 +312,11 @@ class Simulator:
         per-rope k_s, k_b, k_d and mass (diffdlo.physics) in place of the params' numbers, differentiable (in the
         kernel too, where it applies). ``differentiable_frames``: the recorded frames keep their graph (a loss over
         a trajectory, as the calibration fits), instead of detached copies for pictures.
+
+        ``pegs``: (K, 3) or (B, K, 3) fixed posts (x, y, radius) [m] that push the rope (diffdlo/contact.py); the
+        grasped node and its two links are lifted over them during the drag, the rest of the rope stays on the
+        table. ``pin``: (B,) a second node per rope held where it lies during the drag and released with the grasp
+        (-1: no pin). Without pegs and pins a move is what it always was, bit for bit.
         """
         p = self.params
         self._check_state("pos", pos)
@@ -255,22 +326,27 @@ class Simulator:
         batch = pos.shape[0]
         if physics is not None:
             physics.check(batch, p.n_nodes)
+        pegs = self._check_pegs(pos, pegs)
+        pin = self._check_pin(pin, node)
+        if pin is not None and not bool((pin >= 0).any()):
+            pin = None
+        engine = self.engine if pegs is None and pin is None else self.contact_engine
 
         delta = control.clip_drag(delta, p.max_disp)
         distance = delta.norm(dim=-1)
         speed = control.drag_speed(distance, p)
         path_steps = control.path_substeps(distance, p)                       # (B,) on device
-        if self.engine != "torch":
+        if engine != "torch":
             every = record_every if return_info else 0
-            if self.engine == "kernel":
+            if engine == "kernel":
                 # speed's dependence on delta is inside the kernel's adjoint, so it goes in detached
                 out = self._kernel_apply(pos, vel, node, delta, speed.detach(), path_steps, physics,
-                                         record_every=every)
+                                         record_every=every, pegs=pegs, pin=pin)
             else:
                 out = self._triton_apply(pos, vel, node, delta, path_steps, -1, physics, every)
             return self._fused_result(out, node, delta, path_steps, return_info, every, differentiable_frames)
         pos, _, grasp_steps_cpu, finished_at, settled, frames = self._move_eager(
-            pos, vel, node, delta, speed, path_steps, physics, record_every, differentiable_frames)
+            pos, vel, node, delta, speed, path_steps, physics, record_every, differentiable_frames, pegs, pin)
         if not return_info:
             return pos
         if frames is not None and frames[-1] is not pos:
@@ -280,9 +356,10 @@ class Simulator:
         return pos, info
 
     def _move_eager(self, pos, vel, node, delta, speed, path_steps, physics=None, record_every=0,
-                    differentiable_frames=False):
-        """The eager reference loop of ``move`` (``delta`` already clipped): returns (pos, vel, grasp_steps on the
-        CPU, finished_at, settled, frames list or None). Raises SimulationError on divergence."""
+                    differentiable_frames=False, pegs=None, pin=None):
+        """The eager reference loop of ``move`` (``delta`` already clipped; ``pegs`` (B, K, 3) and ``pin`` checked):
+        returns (pos, vel, grasp_steps on the CPU, finished_at, settled, frames list or None). Raises
+        SimulationError on divergence."""
         p = self.params
         batch = pos.shape[0]
         grasp_steps = torch.where(path_steps > 0, path_steps + control.hold_substeps(p), path_steps)
@@ -290,6 +367,12 @@ class Simulator:
         grasped = torch.nn.functional.one_hot(node, p.n_nodes).to(torch.bool).unsqueeze(-1)   # (B, N, 1)
         start = pos.gather(1, node.view(batch, 1, 1).expand(batch, 1, 2)).squeeze(1)           # (B, 2)
         integral = torch.zeros_like(start)
+        if pin is not None:           # the second gripper holds its node where it lies until the release
+            pinned = (torch.nn.functional.one_hot(pin.clamp_min(0), p.n_nodes).to(torch.bool)
+                      & (pin >= 0).view(batch, 1)).unsqueeze(-1)
+            pin_start = pos.gather(1, pin.clamp_min(0).view(batch, 1, 1).expand(batch, 1, 2))      # (B, 1, 2)
+        # links at the grasped node are lifted with it during the drag (no contact), all on the table after
+        on_table = contact.lifted_links(node, p.n_nodes, pos.dtype) if pegs is not None else None
 
         done = torch.zeros(batch, dtype=torch.bool)                      # CPU copy drives the loop
         done_dev = done.to(pos.device, copy=True)
@@ -313,7 +396,17 @@ class Simulator:
                 force = control.pid_force(error, integral, ref_vel, k * p.dt, p,
                                           None if physics is None else physics.k_d)
                 external = (grasped & dragging) * force.unsqueeze(1)
-            new_pos, new_vel = self.substep(pos, vel, external, physics)
+            link_weight = None
+            if pegs is not None:
+                link_weight = torch.where(dragging.view(batch, 1), on_table, torch.ones_like(on_table))
+            new_pos, new_vel = self.substep(pos, vel, external, physics, pegs, link_weight)
+            if pin is not None:
+                held = pinned & dragging
+                release = held & ((k == path_steps) & (phi < 1)).view(batch, 1, 1)
+                new_pos = torch.where(release, new_pos + last_share * (pin_start - new_pos),
+                                      torch.where(held, pin_start, new_pos))
+                new_vel = torch.where(release, new_vel - last_share * new_vel,
+                                      torch.where(held, torch.zeros_like(new_vel), new_vel))
             if p.controller == "kinematic":
                 on_path = grasped & dragging
                 ref_pos, ref_vel = ref_pos.unsqueeze(1), ref_vel.unsqueeze(1)
@@ -348,9 +441,10 @@ class Simulator:
         return pos, vel, grasp_steps_cpu, finished_at, settled, frames
 
     def _kernel_apply(self, pos, vel, node, delta, speed, path_steps, physics, fixed_steps=-1,
-                      record_every=0) -> kernel.MoveOutputs:
+                      record_every=0, pegs=None, pin=None) -> kernel.MoveOutputs:
         """The C++ kernel's move (``delta`` already clipped), or with ``fixed_steps`` >= 0 free evolution for that
-        many substeps (node, delta, speed and path_steps then unused: pass None)."""
+        many substeps (node, delta, speed and path_steps then unused: pass None). ``pegs`` (B, K, 3) and ``pin``
+        (B,) as checked by ``move``, or None."""
         batch = pos.shape[0]
         setup = kernel.Setup(self.params, batch, fixed_steps=fixed_steps, divergence_radius=DIVERGENCE_RADIUS,
                              record_every=record_every)
