@@ -34,11 +34,11 @@ def check_pegs(pegs: torch.Tensor, batch: int, dtype: torch.dtype, device: torch
     if not torch.is_tensor(pegs):
         raise PegError(f"pegs must be a tensor of shape (K, 3) or ({batch}, K, 3) of (x, y, radius) in metres, "
                        f"got {type(pegs).__name__}")
+    shape = tuple(pegs.shape)
     if pegs.ndim == 2:
         pegs = pegs.unsqueeze(0).expand(batch, *pegs.shape)
     if pegs.ndim != 3 or pegs.shape[0] != batch or pegs.shape[2] != 3:
-        raise PegError(f"pegs must have shape (K, 3) or ({batch}, K, 3) of (x, y, radius) in metres, "
-                       f"got {tuple(pegs.shape)}")
+        raise PegError(f"pegs must have shape (K, 3) or ({batch}, K, 3) of (x, y, radius) in metres, got {shape}")
     if pegs.is_complex() or not pegs.is_floating_point():
         raise PegError(f"pegs must be a floating-point tensor, got {pegs.dtype}")
     if pegs.device.type != torch.device(device).type:
@@ -46,10 +46,10 @@ def check_pegs(pegs: torch.Tensor, batch: int, dtype: torch.dtype, device: torch
     pegs = pegs.to(dtype)
     finite = torch.isfinite(pegs).all(-1)
     if not bool(finite.all()):
-        bad = pegs[~finite][:3].tolist()
+        bad = [[float(f"{v:.4g}") for v in row] for row in pegs[~finite][:3].tolist()]
         raise PegError(f"pegs must be finite (x, y, radius), got {bad}")
     if bool((pegs[..., 2] <= 0).any()):
-        bad = pegs[..., 2][pegs[..., 2] <= 0][:3].tolist()
+        bad = [float(f"{v:.4g}") for v in pegs[..., 2][pegs[..., 2] <= 0][:3].tolist()]
         raise PegError(f"a peg's radius must be > 0 m, got {bad}")
     return pegs
 
