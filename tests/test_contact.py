@@ -11,23 +11,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import diffdlo
+from benchmarks.contact_checks import line, winding, wrapped
 from diffdlo import contact
 from diffdlo.contact import PegError
 from diffdlo.params import ParamsError
 
 F64 = torch.float64
-
-
-def line(params, y=0.0):
-    """The straight rope along x, centred at (0, y), (1, N, 2) float64."""
-    return diffdlo.target_shape("horizontal", params, dtype=F64)[None] + torch.tensor([0.0, y], dtype=F64)
-
-
-def winding(pos: torch.Tensor, centre) -> torch.Tensor:
-    """(B,) the angle [rad] the rope (B, N, 2) turns around ``centre`` from its first node to its last."""
-    rel = pos - torch.as_tensor(centre, dtype=pos.dtype)
-    a = torch.atan2(rel[..., 1], rel[..., 0])
-    return ((a.diff(dim=-1) + math.pi) % (2 * math.pi) - math.pi).sum(-1)
 
 
 # ------------------------------------------------------------------ the contact model
@@ -153,25 +142,11 @@ def test_a_pin_holds_its_node_until_the_release(params):
     assert float((held - free).abs().max()) > 0.005                    # the pin changed the move
 
 
-def wrapped(params, sim):
-    """Drag a straight rope's end up, over and past a peg above its middle, then tighten the loop: the rope turns
-    ~2 pi around the peg. Returns (pos, pegs, the deepest overlap seen in any substep)."""
-    pos = line(params)
-    pegs = torch.tensor([[0.0, 0.02, 0.01]], dtype=F64)
-    deepest = -1.0
-    moves = [(19, (0.0, 0.1))] + [(19, (-0.1, 0.0))] * 3 + [(19, (-0.1, -0.03)), (19, (-0.1, 0.0)),
-                                                              (19, (-0.1, 0.0)), (0, (-0.1, 0.0))]
-    for node, d in moves:
-        pos, info = sim.move(pos, torch.tensor([node]), torch.tensor([d], dtype=F64), pegs, return_info=True,
-                             record_every=5)
-        frames = info.frames[:, 0]
-        deepest = max(deepest, float(contact.depth(frames, pegs.expand(len(frames), 1, 3), params.rope_radius).max()))
-    return pos, pegs, deepest
-
-
 def test_a_rope_dragged_around_a_peg_wraps_and_stays_wrapped(params):
     sim = diffdlo.Simulator(params, dtype=F64)
-    pos, pegs, deepest = wrapped(params, sim)
+    pos, pegs, frames = wrapped(params, sim, record_every=5)
+    frames = torch.cat(frames)
+    deepest = float(contact.depth(frames, pegs.expand(len(frames), 1, 3), params.rope_radius).max())
     turn = float(winding(pos, pegs[0, :2]))
     assert turn > 1.8 * math.pi, turn
     assert 0 < deepest < params.rope_radius                        # it touched, and never deeper than r
