@@ -89,8 +89,8 @@ def gradcheck_move(p: CableParams) -> dict:
 # ====================================================================== no rope ends inside a peg
 def random_scenes(p: CableParams, batch: int, seed: int) -> tuple[torch.Tensor, ...]:
     """Random ropes (the env's sigma) with 4 pegs each (2-30 mm, the unused ones far away: 1-4 in play) scattered
-    around the rope, none overlapping the start by more than the rope's radius; drags of 2 cm to the largest, pins on
-    half of the ropes."""
+    around the rope, none touching the start (so every overlap measured comes from the moves); drags of 2 cm to the
+    largest, pins on half of the ropes."""
     g = torch.Generator().manual_seed(seed)
     sim = Simulator(p, dtype=F64)
     pos = sim.random_shape(batch, g).double()
@@ -100,7 +100,7 @@ def random_scenes(p: CableParams, batch: int, seed: int) -> tuple[torch.Tensor, 
     in_play = torch.arange(4)[None] < torch.randint(1, 5, (batch, 1), generator=g)
     centre = torch.where(in_play[..., None], centre, centre + 10.0)
     pegs = torch.cat([centre, radius], -1)
-    bad = contact.overlap(pos, pegs, p.rope_radius) > p.rope_radius                   # (B, L, K): drop those pegs
+    bad = contact.overlap(pos, pegs, p.rope_radius) > 0                               # (B, L, K): drop those pegs
     pegs[..., :2] += bad.any(1)[..., None] * 10.0
     node = torch.randint(0, p.n_nodes, (batch,), generator=g)
     angle = 2 * math.pi * torch.rand(batch, generator=g, dtype=F64)
@@ -112,23 +112,35 @@ def random_scenes(p: CableParams, batch: int, seed: int) -> tuple[torch.Tensor, 
     return pos, pegs, node, delta, pin
 
 
-def max_depth(p: CableParams, batch: int = 256, moves: int = 3, seed: int = 0) -> dict:
-    """``moves`` random moves in a row of ``batch`` random scenes: the deepest overlap during and after."""
+def max_depth(p: CableParams, batch: int = 256, moves: int = 3, seed: int = 0, every: int = 10) -> dict:
+    """``moves`` random moves in a row of ``batch`` random scenes, recorded every ``every`` substeps: the deepest
+    overlap of the links on the table during the drags (the grasped node's two links lifted), the deepest at the
+    end of the moves, and the moves that released their node above a peg (its axis inside one)."""
     sim = Simulator(p, dtype=F64)
     pos, pegs, _, _, _ = random_scenes(p, batch, seed)
-    during, after, touched = [], [], 0
+    drag, after, released_inside, touched = [], [], 0, 0
     t0 = time.perf_counter()
     for m in range(moves):
         _, _, node, delta, pin = random_scenes(p, batch, seed + 1000 * (m + 1))
-        pos, info = sim.move(pos, node, delta, pegs, pin, return_info=True, record_every=10)
-        deep = frames_depth(info.frames, pegs, p.rope_radius)
-        during.append(deep)
+        pos, info = sim.move(pos, node, delta, pegs, pin, return_info=True, record_every=every)
+        frames = info.frames                                                         # (T, B, N, 2)
+        t, b = frames.shape[:2]
+        z = contact.overlap(frames.reshape(t * b, *frames.shape[2:]), pegs.repeat(t, 1, 1), p.rope_radius)
+        z = z.view(t, b, p.n_nodes - 1, -1).amax(-1)                                  # (T, B, L)
+        dragging = (torch.arange(t)[:, None] * every <= info.drag_substeps[None]).unsqueeze(-1)   # (T, B, 1)
+        on_table = contact.lifted_links(node, p.n_nodes, F64).bool()[None]             # (1, B, L)
+        drag.append(torch.where(dragging & on_table, z, torch.full_like(z, -1.0)).amax((0, 2)))
+        at_release = frames[(info.drag_substeps // every).clamp(max=t - 1), torch.arange(b)]       # (B, N, 2)
+        node_xy = at_release[torch.arange(b), node][:, None]                                       # (B, 1, 2)
+        inside = ((node_xy - pegs[..., :2]).norm(dim=-1) < pegs[..., 2]).any(-1) & (info.drag_substeps > 0)
+        released_inside += int(inside.sum())
+        touched += int((z.amax((0, 2)) > 0).sum())
         after.append(contact.depth(pos, pegs, p.rope_radius))
-        touched += int((deep > 0).sum())
-    during, after = torch.stack(during), torch.stack(after)
-    return {"moves": batch * moves, "touched": touched, "deepest_during": float(during.max()),
-            "deepest_after": float(after.max()), "median_after_touching": float(after[during > 0].median()),
-            "engine": sim.contact_engine, "seconds": time.perf_counter() - t0}
+    drag, after = torch.stack(drag), torch.stack(after)
+    return {"moves": batch * moves, "touched": touched, "deepest_drag_on_table": float(drag.max()),
+            "deepest_after": float(after.max()), "median_after_touching": float(after[after > 0].median()),
+            "released_above_a_peg": released_inside, "engine": sim.contact_engine,
+            "seconds": time.perf_counter() - t0}
 
 
 def largest_pull(p: CableParams) -> dict:
@@ -214,9 +226,9 @@ def onset_result(sim: Simulator, s: torch.Tensor, pegs: torch.Tensor) -> torch.T
     return sim.move(pos, torch.full((len(s),), 19), delta, pegs)[:, 17, 1]
 
 
-def onset_gradients(p: CableParams, width: float, sigmas=(0.001, 0.005), grid: int = 9, samples: int = 32,
+def onset_gradients(p: CableParams, width: float, sigmas=(0.001, 0.005), grid: int = 13, samples: int = 32,
                     fd_step: float = 1e-6, seed: int = 0) -> dict:
-    """At ``grid`` drags s across the onset of contact (first touch near s = 0.08 m with the default width): the
+    """At ``grid`` drags s across the onset of contact (first touch near s = 0.075 m, 1 mm apart): the
     analytic df/ds, central differences, and for each perturbation scale sigma the first-order estimate mean(f'(s +
     sigma u)) and the zero-order one mean((f(s + sigma u) - f(s - sigma u)) u / (2 sigma)) over ``samples``
     antithetic draws u ~ N(0, 1) (the same draws for both), their means and standard errors."""
@@ -225,7 +237,7 @@ def onset_gradients(p: CableParams, width: float, sigmas=(0.001, 0.005), grid: i
     pegs = torch.tensor([ONSET_PEG], dtype=F64)
     # half a substep's path (0.05 mm) off the whole numbers of substeps, where the drag's length enters the move only
     # through the release share's clamp (docs/SIMULATOR.md "Pegs and the second gripper" on that boundary)
-    s = torch.linspace(0.066, 0.098, grid, dtype=F64) + 0.5 * p.max_speed * p.dt
+    s = torch.linspace(0.070, 0.082, grid, dtype=F64) + 0.5 * p.max_speed * p.dt
     x = s.clone().requires_grad_(True)
     f = onset_result(sim, x, pegs)
     (analytic,) = torch.autograd.grad(f.sum(), x)
@@ -257,6 +269,57 @@ def gradient_quality(p: CableParams, widths=(0.0005, 0.0025, 0.005), **kw) -> li
     return [onset_gradients(p, w, **kw) for w in widths]
 
 
+def wrap_figure(path: Path, p: CableParams | None = None) -> Path:
+    """The wrap, drawn: the rope (its capsules to scale) after selected moves of WRAP_MOVES, pinned and pulled, and
+    2 s after its release; the peg grey, node 0 a red square, the grasped node an orange star."""
+    from diffdlo.render import _pyplot
+    plt = _pyplot()
+    p = p or load_params("cable")
+    sim = Simulator(p, dtype=F64)
+    pos, pegs = line(p), torch.tensor([[0.0, 0.02, 0.01]], dtype=F64)
+    panels = [("start", pos, None)]
+    for i, (node, d) in enumerate(WRAP_MOVES, 1):
+        pos = sim.move(pos, torch.tensor([node]), torch.tensor([d], dtype=F64), pegs)
+        if i in (1, 4, 5, len(WRAP_MOVES)):
+            panels.append((f"move {i}: node {node} by ({d[0]:+.2f}, {d[1]:+.2f}) m", pos, node))
+    pos = sim.move(pos, torch.tensor([19]), torch.tensor([[-0.1, 0.0]], dtype=F64), pegs, torch.tensor([0]))
+    panels.append(("node 0 pinned, node 19 by (-0.10, +0.00) m", pos, 19))
+    rest, _ = sim.integrate(pos, None, 2000, pegs=pegs)
+    panels.append(("released, 2 s later", rest, None))
+    panels.append(("the same, near the peg", rest, None))
+    fig, axes = plt.subplots(2, 4, figsize=(16, 4.6))
+    for ax, (title, rope, grasped) in zip(axes.flat, panels):
+        xy = rope[0].numpy()
+        ax.add_patch(plt.Circle(tuple(pegs[0, :2].tolist()), float(pegs[0, 2]), color="0.6", zorder=1))
+        ax.plot(xy[:, 0], xy[:, 1], "-", color="tab:blue", lw=4.0, alpha=0.6, zorder=2,   # ~ the 1 cm cable
+                solid_capstyle="round")
+        ax.plot(xy[:, 0], xy[:, 1], "o", color="tab:blue", ms=3, zorder=3)
+        ax.plot(xy[0, 0], xy[0, 1], "s", color="tab:red", ms=6, zorder=4)
+        if grasped is not None:
+            ax.plot(xy[grasped, 0], xy[grasped, 1], "*", color="tab:orange", ms=12, zorder=5)
+        turn = float(winding(rope, pegs[0, :2])[0]) / math.pi
+        ax.set_title(f"{title}\nwinding {turn:.2f} pi", fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlim(-0.3, 0.3)
+        ax.set_ylim(-0.06, 0.1)
+        ax.tick_params(labelsize=8)
+    zoom = axes.flat[-1]
+    zoom.set_xlim(-0.05, 0.05)
+    zoom.set_ylim(-0.03, 0.07)
+    fig.suptitle("A rope dragged round a peg (grey, 1 cm) wraps and stays wrapped: "
+                 "python -m benchmarks.contact_checks --figure docs/figures/wrap.png", fontsize=10)
+    fig.tight_layout()
+    fig.canvas.draw()                                                          # sets the equal-aspect box
+    points_per_m = zoom.get_window_extent().width / fig.dpi * 72 / 0.1        # the zoom's x span is 0.1 m
+    for a, b in zip(rest[0, :-1].numpy(), rest[0, 1:].numpy()):               # the rope's capsules, to scale
+        zoom.plot([a[0], b[0]], [a[1], b[1]], "-", color="tab:blue", alpha=0.3, zorder=2, solid_capstyle="round",
+                  lw=2 * p.rope_radius * points_per_m)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 # ====================================================================== all, and the rows
 def run_all(p: CableParams | None = None, scenes: int = 256) -> dict:
     p = p or load_params("cable")
@@ -278,9 +341,10 @@ def rows(res: dict, cmd: str = "`python -m benchmarks.contact_checks`") -> list[
         f"| gradcheck (float64) through a 6-node move pulled {gc['deepest_overlap'] * 1e3:.1f} mm into a peg, with a "
         f"pin | passes | {'passes' if gc['passed'] else 'FAILS'} ({gc['engine']}) | {cmd} |",
         f"| deepest overlap with a peg, {de['moves']} random moves (1-4 pegs of 2-30 mm, drags to 0.1 m, pins on "
-        f"half), {de['touched']} touching | < the rope's radius (5 mm: its axis outside) | during "
-        f"{de['deepest_during'] * 1e3:.2f} mm, after {de['deepest_after'] * 1e3:.2f} mm (median after touching "
-        f"{de['median_after_touching'] * 1e3:.2f} mm) | {cmd} |",
+        f"half), {de['touched']} touching, {de['released_above_a_peg']} releasing their node above a peg | "
+        f"< the rope's radius (5 mm: its axis outside) | links on the table during the drag "
+        f"{de['deepest_drag_on_table'] * 1e3:.2f} mm; after the move {de['deepest_after'] * 1e3:.2f} mm (median of "
+        f"those touching {de['median_after_touching'] * 1e3:.2f} mm) | {cmd} |",
         f"| a wrapped rope pinned at one end, its other end dragged 0.1 m away 3 times (stretched "
         f"{lp['stretch'] * 100:.0f} %) | not pulled through | deepest {lp['deepest'] * 1e3:.2f} mm, winding "
         f"{lp['winding'] / math.pi:.2f} pi | {cmd} |",
@@ -331,9 +395,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="write results.json here (refuses an existing one without --overwrite)")
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--scenes", type=int, default=256, help="random scenes of the overlap check (default 256)")
+    ap.add_argument("--figure", type=Path, help="only draw the wrap to this PNG (refuses an existing file without "
+                                                  "--overwrite)")
     args = ap.parse_args(argv)
     if args.scenes < 1:
         ap.error(f"--scenes must be >= 1, got {args.scenes}")
+    if args.figure is not None:
+        if args.figure.exists() and not args.overwrite:
+            print(f"{args.figure} exists; pass --overwrite to replace it", file=sys.stderr)
+            return 2
+        print(f"wrote {wrap_figure(args.figure)}")
+        return 0
     if args.out is not None and (args.out / "results.json").exists() and not args.overwrite:
         print(f"{args.out / 'results.json'} exists; pass --overwrite to replace it", file=sys.stderr)
         return 2

@@ -10,9 +10,11 @@ against the literature"; tests/test_physics_literature.py asserts the same numbe
   semi-implicit Euler's frequency error, through ``Simulator.integrate``;
 - the departures of Table 2.1's cable from an elastic rod: the drag's damping ratios and relaxation times, the
   settle cap, the soft axial springs, k_b per node;
-- the gradient of a shape loss w.r.t. the drags of H chained moves against central finite differences.
+- the gradient of a shape loss w.r.t. the drags of H chained moves against central finite differences;
+- pegs and the second gripper (benchmarks/contact_checks.py): contact forces, gradcheck, overlaps, a wrap,
+  conservation, and the gradient's quality at the onset of contact (skip with --no-contact).
 
-    python -m benchmarks.physics_checks                       # prints the markdown table (about a minute)
+    python -m benchmarks.physics_checks                       # prints the markdown table (a few minutes)
     python -m benchmarks.physics_checks --out runs/physics    # also writes runs/physics/results.json
 """
 from __future__ import annotations
@@ -29,6 +31,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from benchmarks import contact_checks
 from diffdlo.utils.files import check_fresh_out
 from diffdlo.forces import energy, turning_angles
 from diffdlo.params import CableParams, load_params
@@ -409,7 +412,7 @@ def gradient_params(n_nodes: int = 10) -> CableParams:
 
 
 # ====================================================================== the table
-def run_all(nodes=NODES, horizons=(1, 5, 20, 50)) -> dict:
+def run_all(nodes=NODES, horizons=(1, 5, 20, 50), contact: bool = True) -> dict:
     p = load_params("cable")
     res: dict = {"bisshopp_drucker": {str(a): v for a, v in BISSHOPP_DRUCKER.items()}}
     res["elastica_ode"] = {str(a): elastica_reference(a) for a in BISSHOPP_DRUCKER}
@@ -435,6 +438,8 @@ def run_all(nodes=NODES, horizons=(1, 5, 20, 50)) -> dict:
     res["gradients"] = [gradient_horizon(gradient_params(), h) for h in horizons]
     res["gradients_step_1e-5"] = [gradient_horizon(gradient_params(), h, step=1e-5) for h in horizons if h >= 20]
     res["substep_boundary_jump"] = substep_boundary_jump(gradient_params())
+    if contact:
+        res["contact"] = contact_checks.run_all(p)
     return res
 
 
@@ -527,6 +532,9 @@ def table(res: dict) -> str:
     rows += ["", f"Continuity: a drag crossing a whole number of substeps ({jump['drag_substeps']}) by "
              f"{jump['gap']:.0e} m moves the settled rope by {jump['jump']:.1e} m ({cmd}; 3.6e-05 m before the "
              f"release within the last substep)."]
+    if "contact" in res:
+        rows += ["", "Pegs and the second gripper:", "", "| check | expected | measured | command |",
+                 "|---|---|---|---|"] + contact_checks.rows(res["contact"], cmd)
     return "\n".join(rows)
 
 
@@ -545,6 +553,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--overwrite", action="store_true", help="replace an existing results.json in --out")
     ap.add_argument("--nodes", type=int, nargs="+", default=list(NODES))
     ap.add_argument("--horizons", type=int, nargs="+", default=[1, 5, 20, 50])
+    ap.add_argument("--no-contact", action="store_true", help="skip the pegs' checks (benchmarks/contact_checks.py)")
     args = ap.parse_args(argv)
     if args.out is not None:
         try:
@@ -554,7 +563,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    res = run_all(tuple(args.nodes), tuple(args.horizons))
+    res = run_all(tuple(args.nodes), tuple(args.horizons), contact=not args.no_contact)
     res["seconds"] = time.perf_counter() - t0
     print(table(res))
     if args.out is not None:

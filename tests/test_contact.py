@@ -309,3 +309,17 @@ def test_a_contact_stiffness_beyond_the_stability_margin_is_refused(params):
         dataclasses.replace(params, contact_width=-0.001)
     with pytest.raises(ParamsError, match=r"'rope_radius' must be > 0, got 0"):
         dataclasses.replace(params, rope_radius=0)
+
+
+def test_the_checks_command_refuses_bad_flags_and_an_existing_file(tmp_path, capsys):
+    from benchmarks import contact_checks
+    (tmp_path / "results.json").write_text("{}")
+    assert contact_checks.main(["--out", str(tmp_path)]) == 2
+    assert (tmp_path / "results.json").read_text() == "{}"
+    figure = tmp_path / "wrap.png"
+    figure.write_text("mine")
+    assert contact_checks.main(["--figure", str(figure)]) == 2
+    assert figure.read_text() == "mine" and "--overwrite" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        contact_checks.main(["--scenes", "0"])
+    assert "--scenes must be >= 1, got 0" in capsys.readouterr().err
