@@ -12,11 +12,14 @@ a lower bound (marked "≥" in the tables, an open marker in the figure).
 """
 from __future__ import annotations
 
+import json
+import re
+from pathlib import PurePosixPath
 from typing import Any
 
 import numpy as np
 
-from .grid import method_label, row_tolerance
+from .grid import ROOT, method_label, row_tolerance
 from .stats import fmt_ci, success_move, t_interval, wilson
 from .summary import _episodes, pairs, paired_differences, paired_texts
 
@@ -197,8 +200,40 @@ def precision_section(grid: dict[str, Any], done: dict[tuple, dict], figure: str
             f"{_share(row['at_tolerance'])} ({tolerance_text(*row['tolerance'])})"]) + " |")
     lines.append("")
     if figure:
-        lines += [f"![precision]({figure})", ""]
+        lines += [f"![precision]({figure})", "", figure_caption(grid, done), ""]
     return lines
+
+
+def _rows_named(points: list[dict[str, Any]]) -> str:
+    """"PPO + policy rollouts on random and random_curve; latent world model on random" (the grid's order)."""
+    tasks: dict[str, list[str]] = {}
+    for p in points:
+        tasks.setdefault(p["label"], []).append(p["task"])
+    return "; ".join(f"{label} on {' and '.join(t)}" for label, t in tasks.items())
+
+
+def figure_caption(grid: dict[str, Any], done: dict[tuple, dict]) -> str:
+    """What the precision figure draws at each rung: these episodes' exact success, the tolerance ladder's where
+    these episodes give only a lower bound and it measured the rung (naming its rows and files), else the bound."""
+    points = ladder_points(grid, done)
+    measured = [p for p in points if p["ladder"]]
+    bounds = [p for p in points if any(not ok and m is None for ok, m in zip(p["exact"], p["measured"]))]
+    text = ("In the figure, a filled marker on a solid line is the success of these episodes (exact); markers are "
+            "moved a little sideways so that rows at the same success stay visible.")
+    if measured:
+        files = ", ".join(f"`{f}`" for f in dict.fromkeys(p["ladder"] for p in measured))
+        own, rerun = [p for p in measured if not p["rerun"]], [p for p in measured if p["rerun"]]
+        text += (" Where these episodes give only a lower bound, a marker with a black edge, reached by a dashed "
+                 "line, is the success the tolerance ladder measured (`benchmarks.studies.tolerance_ladder`: the "
+                 "cells' final checkpoints re-evaluated on the same start ropes until 2 mm, every rung exact; "
+                 f"{files}; docs/PRECISION.md): " + "; ".join(
+                     ([f"on these cells: {_rows_named(own)}"] if own else [])
+                     + ([f"on the same rows' cells run again with the grid's commands (other run folders than "
+                         f"these records'): {_rows_named(rerun)}"] if rerun else [])) + ".")
+    if bounds:
+        text += (" An open marker with an upward arrow and \"≥\" is a lower bound that nothing measured, with no "
+                 f"line into it: {_rows_named(bounds)}.")
+    return text
 
 
 def short_label(grid: dict[str, Any], method: str, variant: str) -> str:
@@ -207,11 +242,56 @@ def short_label(grid: dict[str, Any], method: str, variant: str) -> str:
     return spec["variants"][variant].get("short") or spec.get("short") or method
 
 
+def ladder_tables(grid: dict[str, Any]) -> dict[tuple[str, str, str], dict[str, Any]]:
+    """The tolerance ladder's measured rungs (the grid's ``ladders``: copies of
+    ``benchmarks/studies/tolerance_ladder.py``'s results.json, paths from the repository root), per (method, variant,
+    task) of a group named .../<method>/<variant>/<task> (the cells' run folders it re-evaluated): {"file", "group",
+    "seeds", "rungs": {tol: success}} with the rungs that are exact there (not lower bounds)."""
+    out: dict[tuple[str, str, str], dict[str, Any]] = {}
+    for name in grid.get("ladders") or []:
+        path = ROOT / name
+        for row in json.loads(path.read_text())["rows"]:
+            parts = row["group"].rstrip("/").split("/")
+            if len(parts) < 3:
+                raise ValueError(f"{name}: group {row['group']!r} is not .../<method>/<variant>/<task>")
+            rungs = {round(float(r["tol"]), 9): float(r["success"]) for r in row["ladder"] if not r["lower_bound"]}
+            out[tuple(parts[-3:])] = {"file": name, "group": row["group"], "seeds": int(row["seeds"]),
+                                      "rungs": rungs}
+    return out
+
+
+def _run_folders(done: dict[tuple, dict], method: str, variant: str, task: str) -> set[str]:
+    """The folders that hold a row's seeds (the parent of each record's --out), as its command names them."""
+    folders = set()
+    for key, rec in done.items():
+        if key[:3] == (method, variant, task):
+            m = re.search(r"--out (\S+)", rec.get("_command") or rec.get("command") or "")
+            if m:
+                folders.add(PurePosixPath(m.group(1).strip("'\"")).parent.as_posix())
+    return folders
+
+
 def ladder_points(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str, Any]]:
-    """The figure's points: per precision row and task, success at each ``LADDER`` tolerance and whether it is
-    exact."""
-    return [{"label": short_label(grid, r["method"], r["variant"]),
-             "task": r["task"], "tols": list(LADDER),
-             "success": [p["solved"] / p["episodes"] for p in r["ladder"]],
-             "exact": [not p["censored"] for p in r["ladder"]], "seeds": r["at_tolerance"]["seeds"]}
-            for r in precision_data(grid, done)]
+    """The figure's points: per precision row and task, success at each ``LADDER`` tolerance, whether it is exact,
+    and ``measured``: where it is not (a lower bound) and the tolerance ladder (``ladder_tables``) measured that rung
+    on the row's cells (as many seeds), the ladder's success there, else None; ``ladder``: the ladder's file, or
+    None where no rung was taken from it; ``rerun``: whether the ladder re-evaluated other run folders than the
+    records' (the same row's cells run again), None where no rung was taken from it."""
+    tables = ladder_tables(grid)
+    points = []
+    for r in precision_data(grid, done):
+        table = tables.get((r["method"], r["variant"], r["task"]))
+        if table is not None and table["seeds"] != r["at_tolerance"]["seeds"]:
+            table = None                                        # not these cells: another set of seeds
+        exact = [not p["censored"] for p in r["ladder"]]
+        measured = [None if ok or table is None else table["rungs"].get(round(t, 9))
+                    for t, ok in zip(LADDER, exact)]
+        used = any(m is not None for m in measured)
+        points.append({"label": short_label(grid, r["method"], r["variant"]), "method": r["method"],
+                       "variant": r["variant"], "task": r["task"], "tols": list(LADDER),
+                       "success": [p["solved"] / p["episodes"] for p in r["ladder"]], "exact": exact,
+                       "measured": measured, "seeds": r["at_tolerance"]["seeds"],
+                       "ladder": table["file"] if used else None,
+                       "rerun": (_run_folders(done, r["method"], r["variant"], r["task"]) != {table["group"]})
+                       if used else None})
+    return points
