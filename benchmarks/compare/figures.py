@@ -2,19 +2,24 @@
 (success and moves against the simulator moves spent), per task the learners' success against env steps, the
 planners' error against simulator evaluations, a gallery of start, final shape and target, the cost of planning
 against learning, and the precision rows' success against the tolerance (those rows are in no other figure). Each
-band is the mean +- the 95 % t-interval over seeds."""
+band is the mean +- the 95 % t-interval over seeds.
+
+Each figure is laid out to be read at the size it is written (``DPI``: the line plots 800 to 1,100 px wide): a
+constrained layout, legends outside the axes (beside or below them, the room made for them), rows named by their
+short names or method/variant keys (the full names: the report's methods), a colour per method and a line style per
+variant. tests/test_figures_legible.py checks that no text or legend is cut or covers a panel."""
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from diffdlo.utils.files import replacing
 from .costs import acting_sim_evals
-from .grid import main_rows, row_label
-from .precision import ladder_points, split_done
+from .grid import main_rows
+from .precision import ladder_points, short_label, split_done
 from .summary import heldout_source
 from .stats import t_quantile
 
@@ -48,16 +53,40 @@ def _targets(grid: dict[str, Any], done: list) -> list[str]:
             or (t in grid.get("heldout", {}) and any(t in (r.get("heldout") or {}) for _, r in done))]
 
 
-def _band(ax, x, ys, label, clip: tuple[float, float] | None = None):
+LINESTYLES = ("-", "--", ":", "-.", (0, (6, 1.5, 1, 1.5, 1, 1.5)), (0, (10, 3)), (0, (1, 3)))
+MARKERS = "osD^v<>ph*"
+
+
+def _second_line(note: str) -> str:
+    """A title's note (" [QUICK RUN: format only]") on a line of its own, so the title stays within its panel."""
+    return f"\n{note.strip()}" if note else ""
+
+
+def _row_styles(keys: list[tuple[str, str]]) -> dict[tuple[str, str], dict[str, Any]]:
+    """A line style per (method, variant): a colour per method (in the order first met), and within a method a line
+    style and marker per variant, so that no two rows of a legend look alike (matplotlib's cycle repeats after 10)."""
+    methods: dict[str, list[str]] = {}
+    for method, variant in keys:
+        if variant not in methods.setdefault(method, []):
+            methods[method].append(variant)
+    styles = {}
+    for i, (method, variants) in enumerate(methods.items()):
+        for j, variant in enumerate(variants):
+            styles[(method, variant)] = dict(color=f"C{i % 10}", ls=LINESTYLES[(j + i // 10) % len(LINESTYLES)],
+                                             marker=MARKERS[j % len(MARKERS)])
+    return styles
+
+
+def _band(ax, x, ys, label, clip: tuple[float, float] | None = None, style: dict[str, Any] | None = None):
     """The mean of ``ys`` (seeds x points) over ``x`` with its t-interval band (none for one seed)."""
     m = ys.mean(0)
-    line, = ax.plot(x, m, marker=".", ms=3, label=f"{label} (n={len(ys)})")
+    line, = ax.plot(x, m, ms=3, label=label, **(style or {"marker": "."}))
     if len(ys) > 1:
         half = t_quantile(0.975, len(ys) - 1) * ys.std(0, ddof=1) / math.sqrt(len(ys))
         lo, hi = m - half, m + half
         if clip is not None:                       # as the table's intervals: a rate's band stays in [0, 1]
             lo, hi = np.clip(lo, *clip), np.clip(hi, *clip)
-        ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2)
+        ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15)
 
 
 def _summary_points(grid: dict[str, Any], done: dict[tuple, dict], task: str = "random") -> list[dict[str, Any]]:
@@ -78,73 +107,115 @@ def _summary_points(grid: dict[str, Any], done: dict[tuple, dict], task: str = "
                                        for r in cells]))
                 spent = train + moves * (1 + acting_sim_evals(cells)) * len(cells[0]["episodes"])
             succ = [e["steps"] for e in eps if e["success"]]
-            points.append({"label": row_label(grid, method, variant) + ("" if not image else " [pictures]"),
+            points.append({"label": short_label(grid, method, variant), "method": method, "variant": variant,
                            "image": image, "spent": max(spent, 1.0), "success": len(succ) / len(eps),
                            "moves": float(np.mean(succ)) if succ else float("nan"), "seeds": len(cells)})
     return points
 
 
 def _summary(plt, grid: dict[str, Any], done: dict[tuple, dict], note: str):
+    """Success and moves against the simulator moves spent, a marker per main row on random targets: a colour per
+    method, hollow where the row plans or acts from pictures (beside its method's first row, same colour and
+    marker); the legend below the panels, by the rows' short names (their full names: the report's methods)."""
     points = _summary_points(grid, done)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 5.2))
-    markers = "osD^v<>ph*"
-    for i, p in enumerate(points):
-        style = dict(marker=markers[i % len(markers)], ms=8, ls="none",
-                     mfc="none" if p["image"] else None, label=f"{p['label']} ({p['seeds']} seeds)")
+    colours = {m: f"C{i % 10}" for i, m in enumerate(dict.fromkeys(p["method"] for p in points))}
+    marker_of: dict[tuple[str, str], str] = {}
+    first_row: dict[str, str] = {}
+    for p in points:
+        if not p["image"]:
+            marker_of[(p["method"], p["variant"])] = MARKERS[len(marker_of) % len(MARKERS)]
+            first_row.setdefault(p["method"], marker_of[(p["method"], p["variant"])])
+    n_seeds = len(grid["seeds"])
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.6), layout="constrained")
+    for p in points:
+        marker = marker_of.get((p["method"], p["variant"])) or first_row.get(p["method"], "X")
+        seeds = "" if p["seeds"] == n_seeds else f" ({p['seeds']} seeds)"
+        style = dict(marker=marker, ms=9, ls="none", color=colours[p["method"]], mew=1.5,
+                     mfc="none" if p["image"] else None,
+                     label=p["label"] + (" (pictures)" if p["image"] else "") + seeds)
         axes[0].plot(p["spent"], 100 * p["success"], **style)
         axes[1].plot(p["spent"], p["moves"], **style)
-    for ax, ylabel in ((axes[0], "success @1 cm [%]"), (axes[1], "moves to success (mean)")):
+    episodes = grid.get("episodes", 20)
+    for ax, ylabel in ((axes[0], "success at 1 cm [%]"), (axes[1], "moves to success (mean)")):
         ax.set_xscale("log")
-        ax.set_xlabel("simulator moves spent per 20 episodes, training included")
+        ax.set_xlabel(f"simulator moves spent per {episodes} episodes\n(training included)")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[0].set_ylim(-5, 105)
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=2, frameon=False)
-    fig.suptitle("random targets: each main row (hollow: from 64 px pictures).\nPlanners: the moves they simulate "
-                 "and execute; learners: training env steps + the moves they execute (and simulate, acting by "
-                 f"rollouts){note}", fontsize=9)
-    fig.subplots_adjust(bottom=0.32, top=0.9, wspace=0.25)
+    fig.legend(handles, labels, fontsize=9, loc="outside lower center", ncol=4, frameon=False)
+    fig.suptitle(f"Random targets, the main rows ({n_seeds} seeds each unless named; hollow: from 64 px pictures)"
+                 f"{note}\nplanners: the moves they simulate and execute; learners: training env steps + the moves "
+                 "they execute (and simulate, when acting by rollouts)", fontsize=10)
     return fig
 
 
 def _precision(plt, points: list[dict[str, Any]], note: str):
-    """Success against the mean-error tolerance, a panel per task, a line per precision row: filled markers exact,
-    open ones lower bounds (some episodes ended at their own, looser success first), reached by a dotted line."""
+    """Success against the mean-error tolerance, a panel per task, a line per precision row (its markers moved a
+    little sideways, so rows at the same success stay visible). A filled marker: these episodes' exact success; a
+    filled one with a black edge, reached by a dashed line: where these episodes give only a lower bound, the
+    tolerance ladder's measured success on the same cells (``ladder_points``'s ``measured``); an open marker with an
+    upward arrow and "≥": a lower bound nothing measured, with no line into it (not a measured fall)."""
     from matplotlib.lines import Line2D
     from matplotlib.ticker import NullFormatter
 
     tasks = list(dict.fromkeys(p["task"] for p in points))
-    fig, axes = plt.subplots(1, len(tasks), figsize=(max(5.0 * len(tasks), 6.0), 4.4), squeeze=False, sharey=True)
-    markers = "osD^v<>ph*"
+    fig, axes = plt.subplots(1, len(tasks), figsize=(4.6 * len(tasks) + 1.4, 5.2), squeeze=False, sharey=True,
+                             layout="constrained")
     labels = list(dict.fromkeys(p["label"] for p in points))
-    style = {label: dict(color=f"C{i % 10}", marker=markers[i % len(markers)]) for i, label in enumerate(labels)}
+    style = {label: dict(color=f"C{i % 10}", marker=MARKERS[i % len(MARKERS)]) for i, label in enumerate(labels)}
+    dodge = {label: 10 ** (0.035 * (i - (len(labels) - 1) / 2)) for i, label in enumerate(labels)}
+    ticks = sorted({1000 * t for p in points for t in p["tols"]})
+    kinds_drawn: set[str] = set()
     for ax, task in zip(axes[0], tasks):
         for p in (p for p in points if p["task"] == task):
-            x, y = 1000 * np.array(p["tols"]), 100 * np.array(p["success"])
-            for i in range(len(x) - 1):                 # dotted into a lower bound: not a measured fall
-                ax.plot(x[i:i + 2], y[i:i + 2], ls="-" if p["exact"][i + 1] else ":", lw=1,
-                        color=style[p["label"]]["color"])
-            for xi, yi, exact in zip(x, y, p["exact"]):
-                ax.plot(xi, yi, ms=7, ls="none", mfc=None if exact else "none", **style[p["label"]])
-        ticks = sorted({1000 * t for p in points for t in p["tols"]})
+            st = style[p["label"]]
+            measured = p.get("measured") or [None] * len(p["tols"])
+            kind = ["exact" if ok else "bound" if m is None else "ladder" for ok, m in zip(p["exact"], measured)]
+            x = 1000 * np.array(p["tols"]) * dodge[p["label"]]
+            y = 100 * np.array([s if m is None else m for s, m in zip(p["success"], measured)])
+            for i in range(len(x) - 1):
+                if "bound" in kind[i:i + 2]:            # no line into a lower bound: it is not a measured fall
+                    continue
+                ax.plot(x[i:i + 2], y[i:i + 2], ls="-" if kind[i:i + 2] == ["exact"] * 2 else "--", lw=1.2,
+                        color=st["color"])
+            for xi, yi, k in zip(x, y, kind):
+                kinds_drawn.add(k)
+                if k == "exact":
+                    ax.plot(xi, yi, ms=7, ls="none", **st)
+                elif k == "ladder":
+                    ax.plot(xi, yi, ms=8, ls="none", mec="k", mew=1.5, **st)
+                else:
+                    ax.plot(xi, yi, ms=8, ls="none", mfc="none", mew=1.5, **st)
+                    ax.annotate(f"≥ {yi:.0f} %", xy=(xi, yi), xytext=(0, 30), textcoords="offset points",
+                                ha="center", va="bottom", fontsize=9, color=st["color"],
+                                arrowprops=dict(arrowstyle="<|-", color=st["color"], lw=1.2, shrinkA=0, shrinkB=5))
         ax.set_xscale("log")
+        ax.set_xlim(max(ticks) * 1.35, min(ticks) / 1.35)    # inverted: tighter to the right
         ax.set_xticks(ticks)
         ax.set_xticklabels([f"{t:g}" for t in ticks])
         ax.xaxis.set_minor_formatter(NullFormatter())
-        ax.invert_xaxis()                               # tighter to the right
         ax.set_xlabel("tolerance of the mean error [mm]")
-        ax.set_title(f"{task} ({', '.join(sorted({str(p['seeds']) for p in points if p['task'] == task}))} seeds)",
-                     fontsize=9)
+        seeds = ", ".join(sorted({str(p["seeds"]) for p in points if p["task"] == task}))
+        ax.set_title(f"{task} ({seeds} seeds)", fontsize=10)
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("success [%]")
-    axes[0][0].set_ylim(-5, 105)
-    handles = [Line2D([], [], ms=7, lw=1, **style[label]) for label in labels]
-    fig.legend(handles, labels, fontsize=7, loc="lower center", ncol=2, frameon=False)
-    fig.suptitle("Precision rows: success against the tolerance of the mean error, the same episodes at each\n"
-                 f"(open markers, dotted: lower bounds, some episodes ended at their own looser success first){note}",
-                 fontsize=9)
-    fig.subplots_adjust(bottom=0.1 + 0.06 * ((len(labels) + 1) // 2), top=0.84, wspace=0.08)
+    axes[0][0].set_ylim(-5, 112)
+    handles = [Line2D([], [], ms=7, lw=1.2, **style[label]) for label in labels]
+    grey = dict(color="0.45", marker="o", ms=7)
+    kinds = [("exact", Line2D([], [], ls="-", lw=1.2, **grey), "exact: these episodes"),
+             ("ladder", Line2D([], [], ls="--", lw=1.2, mec="k", mew=1.5, **grey),
+              "measured by the tolerance ladder:\nthe cells re-evaluated until 2 mm"),
+             ("bound", Line2D([], [], ls="none", mfc="none", mew=1.5, **grey),
+              "≥ a lower bound: episodes ended at\ntheir own, looser success first")]
+    kinds = [(h, text) for k, h, text in kinds if k in kinds_drawn]
+    per_column = max(len(kinds), 3)             # the rows in columns, then a column of what the markers mean
+    blank = -len(labels) % per_column
+    handles += [Line2D([], [], ls="none")] * blank + [h for h, _ in kinds]
+    texts = labels + [""] * blank + [text for _, text in kinds]
+    fig.legend(handles, texts, fontsize=9, loc="outside lower center", frameon=False,
+               ncol=math.ceil(len(handles) / per_column))
+    fig.suptitle("Precision rows: success against the tolerance of the mean error" + _second_line(note), fontsize=11)
     return fig
 
 
@@ -154,16 +225,21 @@ def _success_vs_steps(plt, done: list, target: str, note: str):
     for c, r in done:
         if c["kind"] == "agent" and c["target"] == target and r.get("curve"):
             by.setdefault((c["method"], c["variant"]), []).append(np.array(r["curve"], dtype=float))
-    fig, ax = plt.subplots(figsize=(5.5, 3.5))
+    styles = _row_styles(list(by))
+    fig, ax = plt.subplots(figsize=(10, 5.2), layout="constrained")
     for (method, variant), curves in by.items():
         x = curves[0][:, 0]
         ys = np.stack([np.interp(x, c[:, 0], c[:, 1]) for c in curves])
-        _band(ax, x, ys, f"{method}/{variant}", clip=(0.0, 1.0))
+        _band(ax, x, 100 * ys, f"{method}/{variant} ({len(curves)})", clip=(0.0, 100.0),
+              style=styles[(method, variant)])
     ax.set_xscale("log")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("eval success @1 cm")
-    ax.set_title(f"{target}: success vs env steps{note}", fontsize=9)
-    ax.legend(fontsize=7)
+    ax.set_xlabel("training env steps")
+    ax.set_ylabel("success at 1 cm, evaluation [%]")
+    ax.set_ylim(-3, 103)
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{target}: the learners' success against training env steps" + _second_line(note), fontsize=10)
+    fig.legend(fontsize=8, loc="outside right upper", ncol=1 if len(by) <= 22 else 2, frameon=False,
+               title="method/variant (seeds):\nmean, 95 % band over seeds", title_fontsize=8)
     return fig
 
 
@@ -173,7 +249,8 @@ def _planner_error_vs_evals(plt, done: list, target: str, note: str):
     for c, r in done:
         if c["kind"] == "planner" and c["target"] == target and r.get("sim_evals"):
             by.setdefault((c["method"], c["variant"]), []).append(r)
-    fig, ax = plt.subplots(figsize=(5.5, 3.5))
+    styles = _row_styles(list(by))
+    fig, ax = plt.subplots(figsize=(10, 4.6), layout="constrained")
     for (method, variant), runs in by.items():
         curves, per_move = [], []
         for res in runs:
@@ -189,13 +266,15 @@ def _planner_error_vs_evals(plt, done: list, target: str, note: str):
         n = min(len(c) for c in curves)
         epm = float(np.mean(per_move))
         _band(ax, np.arange(n) * epm, np.stack([c[:n] for c in curves]) * 100,
-              label=f"{method}/{variant} ({epm:.0f} evals/move)")
-    ax.axhline(1.0, color="k", lw=0.6, ls="--")
-    ax.axhline(2.0, color="k", lw=0.6, ls=":")
-    ax.set_xlabel("simulator evaluations (rope-moves)")
+              label=f"{method}/{variant} ({len(curves)}; {epm:.0f} per move)", style=styles[(method, variant)])
+    ax.axhline(1.0, color="k", lw=0.8, ls="--", label="1 cm: success")
+    ax.axhline(2.0, color="k", lw=0.8, ls=":", label="2 cm")
+    ax.set_xlabel("simulator evaluations (rope-moves simulated)")
     ax.set_ylabel("mean shape error [cm]")
-    ax.set_title(f"{target}: planners' error vs sim evals{note}", fontsize=9)
-    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{target}: the planners' error against simulator evaluations" + _second_line(note), fontsize=10)
+    fig.legend(fontsize=8, loc="outside right upper", frameon=False,
+               title="method/variant (seeds;\nsimulator evaluations)", title_fontsize=8)
     return fig
 
 
@@ -265,8 +344,9 @@ def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
     drawn = np.concatenate([np.abs(a - centres[j]).max(1) for j, col in enumerate(columns) for p in col for a in p])
     lim = max(float(np.quantile(drawn, 0.98)), 0.1) * 1.05
     cut = bool((drawn > lim).any())
-    height = 1.9 * len(rows) + 0.8
-    fig, axes = plt.subplots(len(rows), len(seeds), figsize=(1.9 * len(seeds) + 1.8, height), squeeze=False)
+    height = 1.9 * len(rows) + 1.0
+    fig, axes = plt.subplots(len(rows), len(seeds), figsize=(1.9 * len(seeds) + 2.0, height), squeeze=False,
+                             layout="constrained")
     for i, (label, row) in enumerate(rows):
         for j, shapes in enumerate(row):
             ax = axes[i, j]
@@ -276,22 +356,21 @@ def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
             ax.set_xticks([])
             ax.set_yticks([])
             if i == 0:
-                ax.set_title(f"seed {seeds[j]}, episode 0", fontsize=7)
+                ax.set_title(f"seed {seeds[j]}, episode 0", fontsize=9)
             if not isinstance(shapes, tuple):
                 ax.text(*centres[j], "not run" if shapes is None else "ran; shapes\nnot recorded", ha="center",
-                        va="center", fontsize=7, color="0.5")
+                        va="center", fontsize=9, color="0.5")
                 continue
             start, final, tgt = shapes
             ax.plot(*start.T, color="0.7", lw=1)
             ax.plot(*tgt.T, "k--", lw=1)
             ax.plot(*final.T, color="tab:blue", lw=1.5)
-            ax.text(0.03, 0.03, final_errors(final, tgt), transform=ax.transAxes, fontsize=6, color="0.3")
-        axes[i, 0].set_ylabel(label, fontsize=7, rotation=0, ha="right", va="center")
-    fig.suptitle(f"{target}: start (grey), final shape (blue), target (dashed; at the final shape's centroid); "
-                 f"final error, mean / worst node [mm]\nview ±{lim:.2f} m in every panel (a column: one episode, one "
-                 f"centre)"
-                 + ("; shapes beyond it are cut" if cut else "") + note, fontsize=8)
-    fig.subplots_adjust(top=1 - 0.75 / height, bottom=0.2 / height, left=0.2, right=0.98)
+            ax.text(0.03, 0.03, final_errors(final, tgt), transform=ax.transAxes, fontsize=8, color="0.3",
+                    bbox=dict(fc="white", ec="none", alpha=0.8, pad=1))
+        axes[i, 0].set_ylabel(label, fontsize=9, rotation=0, ha="right", va="center")
+    fig.suptitle(f"{target}: start (grey), final shape (blue), target (dashed; at the final shape's centroid)"
+                 f"{note}\nin each panel: final error, mean / worst node [mm]; view ±{lim:.2f} m in every panel "
+                 "(a column: one episode, one centre)" + ("; shapes beyond it are cut" if cut else ""), fontsize=10)
     return fig
 
 
@@ -303,42 +382,89 @@ def _pyplot():
     return plt
 
 
-def _save(plt, fig, path: Path, dpi: int = 60) -> Path:
-    if not fig.legends:                                        # a figure legend has its place already
-        title = fig.get_suptitle() if hasattr(fig, "get_suptitle") else ""
-        fig.tight_layout(rect=(0, 0, 1, 1 - 0.3 / fig.get_figheight()) if title else None)   # the title's band kept
+def _save(plt, fig, path: Path, dpi: int) -> Path:
+    """Write ``fig`` at ``dpi`` (its layout is its own: constrained, the legends outside the axes) and close it."""
     with replacing(path, suffix=path.suffix) as tmp:          # a reader never sees half a picture
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or None, metadata={"Software": None})
     plt.close(fig)
     return path
 
 
-def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
-    """The summary and, per task, the learners' success curves, the planners' error against simulator evaluations
-    and the gallery, from the finished cells ``done`` ([(cell, record)]). Returns the files written."""
-    plt = _pyplot()
-    figdir.mkdir(parents=True, exist_ok=True)
+# dots per inch of each figure: the line plots come out 800 to 1,000 px wide, the gallery ~900 px
+DPI = {"summary": 90, "precision": 90, "success_vs_steps": 90, "planner_error_vs_evals": 85, "gallery": 75,
+       "cost": 80}
+
+
+def figures_to_draw(grid: dict[str, Any], done: list) -> list[tuple[str, Callable, int]]:
+    """The figures of ``make_figures`` as (file name, draw: pyplot -> Figure, dpi), none drawn yet: the summary and
+    precision figures and, per task, the learners' success curves, the planners' error against simulator
+    evaluations and the gallery, from the finished cells ``done`` ([(cell, record)])."""
     tag = "quick_" if grid["name"] == "quick" else ""
     note = " [QUICK RUN: format only]" if tag else ""
-    written: list[Path] = []
+    out: list[tuple[str, Callable, int]] = []
     by_key = {_key(c): r for c, r in done}
     if _summary_points(grid, by_key):
-        written.append(_save(plt, _summary(plt, grid, by_key, note), figdir / f"{tag}summary.png", dpi=80))
+        out.append((f"{tag}summary.png", lambda plt: _summary(plt, grid, by_key, note), DPI["summary"]))
     points = ladder_points(grid, by_key)
     if points:
-        written.append(_save(plt, _precision(plt, points, note), figdir / f"{tag}precision.png", dpi=80))
+        out.append((f"{tag}precision.png", lambda plt: _precision(plt, points, note), DPI["precision"]))
     done, _ = split_done(grid, done)          # the task figures: the rows read at their own success
     for target in _targets(grid, done):
         if any(c["kind"] == "agent" and c["target"] == target and r.get("curve") for c, r in done):
-            written.append(_save(plt, _success_vs_steps(plt, done, target, note),
-                                 figdir / f"{tag}success_vs_steps_{target}.png"))
+            out.append((f"{tag}success_vs_steps_{target}.png",
+                        lambda plt, t=target: _success_vs_steps(plt, done, t, note), DPI["success_vs_steps"]))
         if any(c["kind"] == "planner" and c["target"] == target and r.get("sim_evals") for c, r in done):
-            written.append(_save(plt, _planner_error_vs_evals(plt, done, target, note),
-                                 figdir / f"{tag}planner_error_vs_evals_{target}.png"))
+            out.append((f"{tag}planner_error_vs_evals_{target}.png",
+                        lambda plt, t=target: _planner_error_vs_evals(plt, done, t, note),
+                        DPI["planner_error_vs_evals"]))
         if _gallery_panels(grid, done, target):
-            written.append(_save(plt, _gallery(plt, grid, done, target, note), figdir / f"{tag}gallery_{target}.png",
-                                 dpi=70))
-    return written
+            out.append((f"{tag}gallery_{target}.png", lambda plt, t=target: _gallery(plt, grid, done, t, note),
+                        DPI["gallery"]))
+    return out
+
+
+def make_figures(grid: dict[str, Any], done: list, figdir: Path) -> list[Path]:
+    """Draws ``figures_to_draw`` into ``figdir``. Returns the files written."""
+    plt = _pyplot()
+    figdir.mkdir(parents=True, exist_ok=True)
+    return [_save(plt, draw(plt), figdir / name, dpi) for name, draw, dpi in figures_to_draw(grid, done)]
+
+
+def _cost(plt, target: str, rows: list[dict[str, Any]], note: str):
+    """Cumulative simulator moves and wall seconds against episodes run on one task, planners and learners on the
+    same axes, one legend for both panels (a row missing its wall seconds is only in the first)."""
+    episodes = np.logspace(0, 4, 60)
+    keys = [(r["method"], r["variant"] + ("" if r["trained_on"] == target else f" ({r['trained_on']})"))
+            for r in rows]
+    styles = _row_styles(keys)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.2 + 0.2 * math.ceil(len(rows) / 4)), layout="constrained")
+    legend: dict[str, Any] = {}
+    for ax, key, unit in ((axes[0], "moves", "simulator moves"), (axes[1], "s", "wall seconds")):
+        for r, (method, variant) in zip(rows, keys):
+            if math.isnan(r[f"episode_{key}"]):
+                continue
+            label = f"{method}/{variant}: {r['success']:.0%}"
+            line, = ax.plot(episodes, r[f"train_{key}"] + episodes * r[f"episode_{key}"], lw=1.4, label=label,
+                            **dict(styles[(method, variant)], marker=None))
+            legend.setdefault(label, line)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("episodes run")
+        ax.set_ylabel(f"cumulative {unit} (training + episodes)")
+        ax.grid(alpha=0.3)
+    fig.legend(list(legend.values()), list(legend), fontsize=8, loc="outside lower center", frameon=False, ncol=4,
+               title="method/variant: success at 1 cm", title_fontsize=8)
+    fig.suptitle(f"{target}: the cost of planning against learning" + _second_line(note), fontsize=11)
+    return fig
+
+
+def cost_figures_to_draw(grid: dict[str, Any], costs: dict[str, list[dict[str, Any]]]) \
+        -> list[tuple[str, Callable, int]]:
+    """The figures of ``make_cost_figures`` as (file name, draw: pyplot -> Figure, dpi), none drawn yet."""
+    tag = "quick_" if grid["name"] == "quick" else ""
+    note = " [QUICK RUN: format only]" if tag else ""
+    return [(f"{tag}cost_{target}.png", lambda plt, t=target, r=rows: _cost(plt, t, r, note), DPI["cost"])
+            for target, rows in costs.items()]
 
 
 def make_cost_figures(grid: dict[str, Any], costs: dict[str, list[dict[str, Any]]], figdir: Path) -> list[Path]:
@@ -346,24 +472,4 @@ def make_cost_figures(grid: dict[str, Any], costs: dict[str, list[dict[str, Any]
     same axes (a learner starts at its training cost; where its line crosses CEM's it has paid back)."""
     plt = _pyplot()
     figdir.mkdir(parents=True, exist_ok=True)
-    tag = "quick_" if grid["name"] == "quick" else ""
-    written = []
-    episodes = np.logspace(0, 4, 60)
-    for target, rows in costs.items():
-        fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-        for ax, key, unit in ((axes[0], "moves", "simulator moves"), (axes[1], "s", "wall seconds")):
-            for r in rows:
-                if math.isnan(r[f"episode_{key}"]):
-                    continue
-                label = f"{r['method']}/{r['variant']}" + ("" if r["trained_on"] == target else f" ({r['trained_on']})")
-                ax.plot(episodes, r[f"train_{key}"] + episodes * r[f"episode_{key}"],
-                        label=f"{label}: {r['success']:.0%}")
-            ax.set_xscale("log")
-            ax.set_yscale("log")
-            ax.set_xlabel("episodes run")
-            ax.set_ylabel(f"cumulative {unit}")
-            ax.legend(fontsize=6)
-        fig.suptitle(f"{target}: cost of planning vs learning (legend: success @1 cm)"
-                     + (" [QUICK RUN: format only]" if tag else ""), fontsize=9)
-        written.append(_save(plt, fig, figdir / f"{tag}cost_{target}.png"))
-    return written
+    return [_save(plt, draw(plt), figdir / name, dpi) for name, draw, dpi in cost_figures_to_draw(grid, costs)]

@@ -38,8 +38,17 @@ def readme_summary(grid: dict[str, Any], records: list[dict[str, Any]], cells: l
                       "cell of the grid). Written from `docs/results/cells.jsonl` by `python -m benchmarks.compare "
                       "--report-only`.", "",
                       "![Success and moves against the simulator moves each method spent (random targets)]"
-                      "(docs/figures/summary.png)",
+                      "(docs/figures/summary.png)", "", summary_caption(grid, "docs/RESULTS.md, its Definitions"),
                       README_END])
+
+
+def summary_caption(grid: dict[str, Any], names: str) -> str:
+    """The text under the summary figure: what its axes count, and where the rows' full names are (``names``)."""
+    return (f"The figure: random targets, a marker per main row by its short name (the full names: {names}); "
+            "hollow: the row from 64 px pictures. Its x axis: the simulator moves a row "
+            f"spent for its {grid.get('episodes', 20)} evaluated episodes, training included (planners: the moves "
+            "they simulate and execute; learners: their training env steps and the moves they execute, and "
+            "simulate when they act by policy rollouts).")
 
 
 def update_readme(path: Path | str, block: str) -> bool:
@@ -315,7 +324,8 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
                   "are named. Details, intervals and commands: the per-task sections below.", "",
                   *summary_table(grid, by_key), ""]
         summary = [n for n in names if n.endswith("summary.png")]
-        lines += [f"![summary]({rel}/{n})" for n in summary] + ([""] if summary else [])
+        lines += [f"![summary]({rel}/{n})" for n in summary] + (["", summary_caption(grid, "the Definitions below"), ""]
+                                                                 if summary else [])
         lines += _notes(grid) + paired_section(grid, by_key) + _bound(grid) + missing_section(grid, by_key)
         lines += cpu_hours(grid, by_key)
     precision = [n for n in names if n.endswith("precision.png")]
