@@ -12,6 +12,10 @@ implicit damping factor 1 / (1 + dt k_d / node_mass) (``physics_columns``); the 
 those four numbers and autograd carries it on to k_d and mass. Frames (positions every ``record_every`` substeps)
 come back per rope up to its own stop (``assemble_frames`` makes the eager path's (F, B, N, 2) of them), and their
 gradients are injected at their substeps in the backward sweep.
+
+Pegs (diffdlo/contact.py) go in as a contiguous (B, K, 3) tensor in the state's dtype (None: no contact, the kernel
+then runs exactly its code without them) and the pin as a (B,) int64 tensor (-1: none; None: no pins); the contact
+parameters rope_radius, contact_stiffness and contact_width are always in ``Setup.fp``. The pegs get no gradient.
 """
 from __future__ import annotations
 
@@ -96,11 +100,11 @@ def _build() -> ctypes.CDLL:
             os.replace(out, target)     # atomic: concurrent processes never load a half-written file
     lib = ctypes.CDLL(str(target))
     lib.diffdlo_lanes.restype = ctypes.c_int64
-    ptr = ctypes.c_void_p
-    for suffix in ("f32", "f64"):
-        getattr(lib, f"diffdlo_forward_{suffix}").argtypes = [ptr] * 15
-        getattr(lib, f"diffdlo_backward_{suffix}").argtypes = [ptr] * 16
-        getattr(lib, f"diffdlo_hvp_{suffix}").argtypes = [ptr, ctypes.c_int64, ptr, ptr, ptr]
+    ptr, i64 = ctypes.c_void_p, ctypes.c_int64
+    for suffix in ("f32", "f64"):     # ..., phys, pegs, n_pegs, pin, ...
+        getattr(lib, f"diffdlo_forward_{suffix}").argtypes = [ptr] * 10 + [i64] + [ptr] * 7
+        getattr(lib, f"diffdlo_backward_{suffix}").argtypes = [ptr] * 10 + [i64] + [ptr] * 8
+        getattr(lib, f"diffdlo_hvp_{suffix}").argtypes = [ptr, i64, ptr, ptr, ptr, ptr, i64, i64]
         for name in ("forward", "backward", "hvp"):
             getattr(lib, f"diffdlo_{name}_{suffix}").restype = None
     return lib
@@ -157,7 +161,8 @@ class Setup:
                  divergence_radius: float = 100.0, lane_groups: bool = True, record_every: int = 0):
         self.fp = torch.tensor([p.rest_length, p.k_s, p.k_b, p.dt, 1.0 / p.node_mass,
                                 1.0 / (1.0 + p.dt * p.k_d / p.node_mass), p.max_speed, p.settle_threshold,
-                                divergence_radius], dtype=torch.float64)
+                                divergence_radius, p.rope_radius, p.contact_stiffness, p.contact_width],
+                               dtype=torch.float64)
         longest = fixed_steps if fixed_steps >= 0 else p.max_drag_steps + p.settle_max_substeps + 1
         self.record_every = int(record_every)
         self.frame_cap = longest // record_every + 1 if record_every > 0 else 0
@@ -183,49 +188,72 @@ def _contig(*tensors):
     return [None if t is None else t.detach().contiguous() for t in tensors]
 
 
-def forward(setup: Setup, pos, vel, node, delta, speed, n_grasp, phys=None):
+def _pegs_and_pin(pos, pegs, pin):
+    """(pegs, K, pin) as the kernel takes them: pegs (B, K, 3) contiguous in pos's dtype or None (K = 0: None),
+    pin (B,) contiguous int64 or None."""
+    batch = pos.shape[0]
+    if pegs is not None:
+        if pegs.ndim != 3 or pegs.shape[0] != batch or pegs.shape[2] != 3:
+            raise ValueError(f"pegs must have shape ({batch}, K, 3), got {tuple(pegs.shape)}")
+        pegs = pegs.detach().to(device="cpu", dtype=pos.dtype).contiguous() if pegs.shape[1] > 0 else None
+    if pin is not None:
+        if pin.shape != (batch,):
+            raise ValueError(f"pin must have shape ({batch},), got {tuple(pin.shape)}")
+        pin = pin.detach().to(device="cpu", dtype=torch.int64).contiguous()
+        if batch and (int(pin.min()) < -1 or int(pin.max()) >= pos.shape[1]):     # the kernel indexes with it
+            raise ValueError(f"pin node ids must be in [-1, {pos.shape[1] - 1}], got {pin.tolist()}")
+    return pegs, 0 if pegs is None else pegs.shape[1], pin
+
+
+def forward(setup: Setup, pos, vel, node, delta, speed, n_grasp, phys=None, pegs=None, pin=None):
     """Run the kernel; returns (pos, vel, steps, settled, diverged, frames): frames (B, frame_cap, N, 2) where
-    ``setup.record_every`` > 0 (rope b's frame j valid for j <= steps[b] // record_every), else None."""
+    ``setup.record_every`` > 0 (rope b's frame j valid for j <= steps[b] // record_every), else None. ``pegs``
+    (B, K, 3) and ``pin`` (B,) int64 (-1: none), or None."""
     lib = _load()
     pos, vel, node, delta, speed, n_grasp = _contig(pos, vel, node, delta, speed, n_grasp)
     phys = None if phys is None else phys.detach().to(torch.float64).contiguous()
+    pegs, n_pegs, pin = _pegs_and_pin(pos, pegs, pin)
     out_pos, out_vel = torch.empty_like(pos), torch.empty_like(pos)
     batch = pos.shape[0]
     steps, settled, diverged = (torch.empty(batch, dtype=torch.int64) for _ in range(3))
     frames = (pos.new_empty(batch, setup.frame_cap, *pos.shape[1:]) if setup.record_every > 0 else None)
     getattr(lib, f"diffdlo_forward_{_suffix(pos.dtype)}")(
         _ptr(setup.fp), _ptr(setup.ip), _ptr(pos), _ptr(vel), _ptr(node), _ptr(delta), _ptr(speed),
-        _ptr(n_grasp), _ptr(phys), _ptr(out_pos), _ptr(out_vel), _ptr(steps), _ptr(settled), _ptr(diverged),
-        _ptr(frames))
+        _ptr(n_grasp), _ptr(phys), _ptr(pegs), n_pegs, _ptr(pin), _ptr(out_pos), _ptr(out_vel), _ptr(steps),
+        _ptr(settled), _ptr(diverged), _ptr(frames))
     return out_pos, out_vel, steps, settled.bool(), diverged.bool(), frames
 
 
 def backward(setup: Setup, pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out, phys=None,
-             grad_frames=None, want_phys: bool = False):
+             grad_frames=None, want_phys: bool = False, pegs=None, pin=None):
     """Adjoint of ``forward``: returns (grad_pos, grad_vel, grad_delta, grad_phys); grad_frames (B, frame_cap, N, 2)
     the incoming gradients of the frames (or None); grad_phys (B, 4) float64 if ``want_phys``, else None."""
     lib = _load()
     pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out, grad_frames = _contig(
         pos, vel, node, delta, speed, n_grasp, grad_pos_out, grad_vel_out, grad_frames)
     phys = None if phys is None else phys.detach().to(torch.float64).contiguous()
+    pegs, n_pegs, pin = _pegs_and_pin(pos, pegs, pin)
     if grad_frames is not None and setup.record_every <= 0:
         raise ValueError("frame gradients need a Setup with record_every > 0")
     grad_pos, grad_vel, grad_delta = torch.empty_like(pos), torch.empty_like(pos), torch.empty_like(delta)
     grad_phys = pos.new_empty(pos.shape[0], 4) if want_phys else None
     getattr(lib, f"diffdlo_backward_{_suffix(pos.dtype)}")(
         _ptr(setup.fp), _ptr(setup.ip), _ptr(pos), _ptr(vel), _ptr(node), _ptr(delta), _ptr(speed),
-        _ptr(n_grasp), _ptr(phys), _ptr(grad_pos_out), _ptr(grad_vel_out), _ptr(grad_frames), _ptr(grad_pos),
-        _ptr(grad_vel), _ptr(grad_delta), _ptr(grad_phys))
+        _ptr(n_grasp), _ptr(phys), _ptr(pegs), n_pegs, _ptr(pin), _ptr(grad_pos_out), _ptr(grad_vel_out),
+        _ptr(grad_frames), _ptr(grad_pos), _ptr(grad_vel), _ptr(grad_delta), _ptr(grad_phys))
     return grad_pos, grad_vel, grad_delta, None if grad_phys is None else grad_phys.to(torch.float64)
 
 
-def hvp(p, pos: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """Hessian-vector product of the energy for one rope (N, 2); exposed for tests."""
+def hvp(p, pos: torch.Tensor, u: torch.Tensor, pegs: torch.Tensor | None = None, lift: int = -1) -> torch.Tensor:
+    """Hessian-vector product of the energy for one rope (N, 2), with the contact energy of ``pegs`` (K, 3) where
+    given (the links at node ``lift`` off the table, -1: none); exposed for tests."""
     lib = _load()
     setup = Setup(p, 1)
     pos, u = _contig(pos, u)
+    pegs = None if pegs is None else pegs.detach().to(pos.dtype).contiguous()
     out = torch.empty_like(pos)
-    getattr(lib, f"diffdlo_hvp_{_suffix(pos.dtype)}")(_ptr(setup.fp), pos.shape[0], _ptr(pos), _ptr(u), _ptr(out))
+    getattr(lib, f"diffdlo_hvp_{_suffix(pos.dtype)}")(_ptr(setup.fp), pos.shape[0], _ptr(pos), _ptr(u), _ptr(out),
+                                                       _ptr(pegs), 0 if pegs is None else pegs.shape[0], int(lift))
     return out
 
 
@@ -261,25 +289,25 @@ def frames_gradient(grad_frames: torch.Tensor | None) -> torch.Tensor | None:
 
 class KernelRun(torch.autograd.Function):
     """Differentiable kernel call: (pos, vel, delta, phys) -> ``MoveOutputs``. ``phys``: None or the (B, 4) of
-    ``physics_columns``."""
+    ``physics_columns``; ``pegs`` (B, K, 3) and ``pin`` (B,) int64, or None (no gradient w.r.t. the pegs)."""
 
     @staticmethod
-    def forward(ctx, setup, pos, vel, node, delta, speed, n_grasp, phys=None):
+    def forward(ctx, setup, pos, vel, node, delta, speed, n_grasp, phys=None, pegs=None, pin=None):
         out_pos, out_vel, steps, settled, diverged, frames = forward(setup, pos, vel, node, delta, speed, n_grasp,
-                                                                     phys)
+                                                                     phys, pegs, pin)
         ctx.setup = setup
-        ctx.save_for_backward(pos, vel, node, delta, speed, n_grasp, phys)
+        ctx.save_for_backward(pos, vel, node, delta, speed, n_grasp, phys, pegs, pin)
         return move_outputs(ctx, out_pos, out_vel, steps, settled, diverged, frames)
 
     @staticmethod
     def backward(ctx, grad_pos, grad_vel, _steps, _settled, _diverged, grad_frames):
-        pos, vel, node, delta, speed, n_grasp, phys = ctx.saved_tensors
+        pos, vel, node, delta, speed, n_grasp, phys, pegs, pin = ctx.saved_tensors
         if grad_pos is None:
             grad_pos = torch.zeros_like(pos)
         want_phys = phys is not None and ctx.needs_input_grad[7]
         g_pos, g_vel, g_delta, g_phys = backward(ctx.setup, pos, vel, node, delta, speed, n_grasp, grad_pos, grad_vel,
-                                                 phys, frames_gradient(grad_frames), want_phys)
-        return None, g_pos, g_vel, None, g_delta, None, None, g_phys
+                                                 phys, frames_gradient(grad_frames), want_phys, pegs, pin)
+        return None, g_pos, g_vel, None, g_delta, None, None, g_phys, None, None
 
 
 def assemble_frames(every: int, buffer: torch.Tensor, pos: torch.Tensor, steps: torch.Tensor,
