@@ -49,7 +49,7 @@ class MoveInfo:
 
 BACKENDS = ("auto", "kernel", "torch", "triton")
 ENGINES = ("kernel", "triton", "torch")          # what runs the moves, in the order "auto" prefers them
-CONTACT_ENGINES = ("torch",)                     # the engines that run moves with pegs and the pin
+CONTACT_ENGINES = ("kernel", "torch")            # the engines that run moves with pegs and the pin
 
 
 def _resolve_engine(params: CableParams, device: torch.device, backend: str) -> tuple[str, dict[str, str]]:
@@ -453,7 +453,8 @@ class Simulator:
             delta = torch.zeros(batch, 2, dtype=self.dtype)
             speed = torch.full((batch,), self.params.max_speed, dtype=self.dtype)
         phys = None if physics is None else kernel.physics_columns(self.params, physics, batch)
-        return kernel.MoveOutputs._make(kernel.KernelRun.apply(setup, pos, vel, node, delta, speed, path_steps, phys))
+        return kernel.MoveOutputs._make(kernel.KernelRun.apply(setup, pos, vel, node, delta, speed, path_steps, phys,
+                                                               pegs, pin))
 
     def _triton_apply(self, pos, vel, node, delta, path_steps, fixed_steps, physics,
                       record_every=0) -> kernel.MoveOutputs:
