@@ -20,6 +20,19 @@ path on the same GPU (up to B = --eager-max: it is slow) and the CPU C++ kernel 
 (the Triton adjoint kernel; up to B = --backward-max), the backward over the forward, the peak GPU memory of the
 forward+backward, the deviation of the float32 Triton move from the float64 eager reference on the GPU, and that of
 its gradient w.r.t. the start positions and the drag (largest error over largest entry; first 64 ropes).
+
+    python benchmarks/speed/sim_speed.py --pegs 4 [--batches 64 1024] [--dtype float32] [--repeats 5]
+
+With --pegs K it times instead the moves with pegs and the pin (diffdlo/contact.py) on the default engine (the C++
+kernel on the CPU): K pegs of radius 1-2 cm on a 5 cm circle round the origin, among the random start shapes (those
+that start clear of them: the rope's axis outside every peg), against the same moves without pegs, and the same
+moves with a pin (a random node other than the grasped one) against no pin; for each B the share of ropes that
+touch a peg during the move, the times of one batched move and their ratios, the time of the simulator's own check
+of the pegs and the start state (torch ops, before the engine runs; "x eng": the ratio without it), and the ratio
+for the forward+backward of one move. Timings are medians of --repeats interleaved runs (CPU time of the process
+where the device is the CPU, so the machine's other load shows less), then a final JSON line. On a machine whose
+cores are busy with other work, run it on one thread (OMP_NUM_THREADS=1): torch's threads waiting on each other
+there inflate the check's time many times over.
 """
 from __future__ import annotations
 
@@ -34,6 +47,7 @@ import time
 import torch
 
 import diffdlo
+from diffdlo import contact
 
 
 def _sync() -> None:
@@ -136,6 +150,98 @@ def cuda_main(args) -> None:
                       "threads": torch.get_num_threads(), "rows": rows}))
 
 
+def ring_pegs(n_pegs: int, dtype=torch.float32) -> torch.Tensor:
+    """(K, 3) pegs of radius 1 to 2 cm on a 5 cm circle round the origin, where the random start shapes lie."""
+    angle = torch.arange(n_pegs, dtype=torch.float64) * (2 * torch.pi / n_pegs) + 0.3
+    radius = torch.linspace(0.01, 0.02, n_pegs, dtype=torch.float64)
+    return torch.stack([0.05 * angle.cos(), 0.05 * angle.sin(), radius], -1).to(dtype)
+
+
+def peg_problem(sim: diffdlo.Simulator, batch: int, pegs: torch.Tensor, seed: int = 0):
+    """Random start shapes that start clear of ``pegs`` (the rope's surface at most half its radius into a peg;
+    the others are drawn again), random actions as ``problem``'s, and a random pin other than the grasped node."""
+    p = sim.params
+    g = torch.Generator().manual_seed(seed)
+    kept, count = [], 0
+    for _ in range(100):
+        if count >= batch:
+            break
+        shapes = sim.random_shape(batch, g)
+        ok = contact.depth(shapes, pegs.to(shapes).expand(batch, *pegs.shape), p.rope_radius) <= 0.5 * p.rope_radius
+        kept.append(shapes[ok])
+        count += int(ok.sum())
+    else:
+        raise SystemExit(f"only {count} of 100 x {batch} random shapes start clear of the {len(pegs)} pegs; use fewer")
+    pos = torch.cat(kept)[:batch]
+    node = torch.randint(0, p.n_nodes, (batch,), generator=g).to(sim.device)
+    delta = ((torch.rand(batch, 2, generator=g) * 2 - 1) * p.action_scale).to(sim.device, sim.dtype)
+    pin = torch.randint(0, p.n_nodes, (batch,), generator=g).to(sim.device)
+    pin = torch.where(pin == node, (pin + 1) % p.n_nodes, pin)
+    return pos, node, delta, pin
+
+
+def interleaved_medians(fns: dict, repeats: int, clock=time.perf_counter) -> dict:
+    """Median time of each function over ``repeats`` rounds that run them all in turn (drifts of the machine's
+    load hit them alike)."""
+    times = {key: [] for key in fns}
+    for fn in fns.values():                      # warm-up: first-call allocations and caches
+        fn()
+    for _ in range(repeats):
+        for key, fn in fns.items():
+            _sync()
+            t0 = clock()
+            fn()
+            _sync()
+            times[key].append(clock() - t0)
+    return {key: statistics.median(values) for key, values in times.items()}
+
+
+def pegs_main(args) -> None:
+    """--pegs K: moves with K pegs and with a pin against the same moves without, on the default engine."""
+    dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
+    sim = diffdlo.Simulator(diffdlo.load_params("cable"), device=args.device, dtype=dtype)
+    pegs = ring_pegs(args.pegs, dtype).to(sim.device)
+    on_cpu = sim.device.type == "cpu"
+    clock = time.process_time if on_cpu else time.perf_counter
+    print(f"moves with {args.pegs} pegs (radius 1-2 cm, 5 cm round the origin) and a pin: engine "
+          f"{sim.contact_engine} (without: {sim.engine}) on {sim.device}, {args.dtype}, "
+          f"{torch.get_num_threads()} threads; {'CPU' if on_cpu else 'wall'} time, median of {args.repeats}")
+    print(f"{'B':>6} {'touch':>6} {'move ms':>9} {'pegs ms':>9} {'x':>6} {'check ms':>9} {'x eng':>6} {'pin ms':>9} "
+          f"{'x':>6} {'f+b ms':>9} {'pegs f+b':>9} {'x':>6}")
+    rows = []
+    for batch in args.batches:
+        pos, node, delta, pin = peg_problem(sim, batch, pegs)
+        _, info = sim.move(pos, node, delta, pegs, return_info=True, record_every=20)
+        touch = float(torch.stack([contact.depth(f, pegs.expand(batch, *pegs.shape), sim.params.rope_radius)
+                                   for f in info.frames]).gt(0).any(0).float().mean())
+
+        def fb(with_pegs):
+            def run():
+                x, d = pos.clone().requires_grad_(True), delta.clone().requires_grad_(True)
+                sim.move(x, node, d, pegs if with_pegs else None).sum().backward()
+            return run
+
+        t = interleaved_medians({"move": lambda: sim.move(pos, node, delta),
+                                 "pegs": lambda: sim.move(pos, node, delta, pegs),
+                                 "check": lambda: sim._check_pegs(pos, pegs),      # what move runs before the engine
+                                 "pin": lambda: sim.move(pos, node, delta, None, pin)}, args.repeats, clock)
+        t.update(interleaved_medians({"fb": fb(False), "fb_pegs": fb(True)}, max(1, args.repeats // 2), clock))
+        row = {"batch": batch, "touching": touch, "move_s": t["move"], "pegs_move_s": t["pegs"],
+               "pegs_over_plain": t["pegs"] / t["move"], "pegs_check_s": t["check"],
+               "pegs_engine_over_plain": (t["pegs"] - t["check"]) / t["move"],
+               "pin_move_s": t["pin"], "pin_over_plain": t["pin"] / t["move"],
+               "forward_backward_s": t["fb"], "pegs_forward_backward_s": t["fb_pegs"],
+               "pegs_forward_backward_over_plain": t["fb_pegs"] / t["fb"]}
+        rows.append(row)
+        print(f"{batch:>6} {touch:>6.0%} {t['move'] * 1e3:>9.2f} {t['pegs'] * 1e3:>9.2f} "
+              f"{row['pegs_over_plain']:>5.2f}x {t['check'] * 1e3:>9.2f} {row['pegs_engine_over_plain']:>5.2f}x "
+              f"{t['pin'] * 1e3:>9.2f} {row['pin_over_plain']:>5.2f}x "
+              f"{t['fb'] * 1e3:>9.1f} {t['fb_pegs'] * 1e3:>9.1f} {row['pegs_forward_backward_over_plain']:>5.2f}x",
+              flush=True)
+    print(json.dumps({"device": str(sim.device), "dtype": args.dtype, "threads": torch.get_num_threads(),
+                      "pegs": args.pegs, "engine": sim.contact_engine, "rows": rows}))
+
+
 def memory_probe(batch: int, moves: int, backend: str) -> dict:
     """Peak RSS growth [MB] while taking the gradient of a `moves`-move sequence (run in a fresh process)."""
     sim = diffdlo.Simulator(diffdlo.load_params("cable"), backend=backend)
@@ -167,8 +273,16 @@ def main() -> None:
     parser.add_argument("--cpu-max", type=int, default=65536, help="cuda: largest B timed on the CPU kernel")
     parser.add_argument("--backward-max", type=int, default=65536,
                         help="cuda: largest B whose forward+backward is timed")
+    parser.add_argument("--pegs", type=int, default=0,
+                        help="time moves with this many pegs and with a pin against plain moves instead")
+    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="--pegs: the state's dtype")
     parser.add_argument("--_memory_probe", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.pegs < 0:
+        parser.error(f"--pegs must be >= 0, got {args.pegs}")
+    if args.pegs > 0:
+        pegs_main(args)
+        return
     if args.device.startswith("cuda") and not args._memory_probe:
         cuda_main(args)
         return
