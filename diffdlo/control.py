@@ -46,8 +46,11 @@ def reference(start: torch.Tensor, delta: torch.Tensor, speed: torch.Tensor, k: 
     path length crossed a whole number of substeps would make the outcome discontinuous in the action).
     """
     safe = delta.norm(dim=-1).clamp_min(1e-12)
-    frac = ((k * dt) * speed / safe).clamp(max=1.0)
-    frac_prev = (((k - 1) * dt) * speed / safe).clamp(max=1.0)
+    # min(raw, 1) with no gradient at raw == 1 (a path of exactly a whole number of substeps ends ON the goal, which
+    # moves with the drag: clamp's gradient there would hold the end still, dropping d(move)/d(drag) along it)
+    raw, raw_prev = (k * dt) * speed / safe, ((k - 1) * dt) * speed / safe
+    frac = torch.where(raw < 1.0, raw, torch.ones_like(raw))
+    frac_prev = torch.where(raw_prev < 1.0, raw_prev, torch.ones_like(raw_prev))
     position = start + frac.unsqueeze(-1) * delta
     velocity = ((frac - frac_prev) / dt).unsqueeze(-1) * delta
     return position, velocity

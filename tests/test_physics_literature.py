@@ -8,8 +8,11 @@ import dataclasses
 import math
 
 import pytest
+import torch
 
 from benchmarks import physics_checks as pc
+from conftest import crumpled
+from diffdlo.simulator import Simulator
 from diffdlo.params import CableParams, ParamsError, load_params
 from diffdlo.rod import params_for_rod, rod_properties
 
@@ -178,3 +181,28 @@ def test_command_refuses_an_existing_results_json(tmp_path, capsys):
     assert pc.main(["--out", str(tmp_path)]) == 2
     assert "results.json" in capsys.readouterr().err
     assert (tmp_path / "results.json").read_text() == "{}"
+
+
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+def test_the_gradient_of_a_drag_of_a_whole_number_of_substeps(backend):
+    """Regression: a drag of exactly a whole number of substeps (0.03 m = 300 x max_speed dt) got d(move)/d(drag)
+    along the drag as if the path's end stood still (the clamp of the path's share passed its gradient at equality):
+    about 0, outside the move's one-sided derivatives there (the release within the last substep makes the move's
+    derivative along the drag a sawtooth of period max_speed dt, with its kink at these drags). Now it lies between
+    them; across the drag it equals central differences."""
+    p = pc.gradient_params()
+    sim = Simulator(p, dtype=torch.float64, backend=backend)
+    pos = crumpled(1, p, sigma=0.6, seed=2)
+    node, delta = torch.tensor([p.n_nodes - 1]), torch.tensor([[0.018, 0.024]], dtype=torch.float64)   # 0.03 m
+    weights = torch.randn(pos.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    loss = lambda d: float((sim.move(pos, node, d) * weights).sum())
+    d = delta.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad((sim.move(pos, node, d) * weights).sum(), d)
+    along, across = delta[0] / delta.norm(), torch.tensor([-0.8, 0.6], dtype=torch.float64)
+    h = 1e-9
+    right = (loss(delta + h * along) - loss(delta)) / h
+    left = (loss(delta) - loss(delta - h * along)) / h
+    assert abs(left - right) > 0.1 * abs(left)                          # a kink: the two sides differ
+    assert min(left, right) < float(grad[0] @ along) < max(left, right), (left, float(grad[0] @ along), right)
+    central = (loss(delta + 1e-7 * across) - loss(delta - 1e-7 * across)) / 2e-7
+    assert abs(float(grad[0] @ across) - central) < 1e-5 * abs(central)

@@ -225,8 +225,8 @@ if triton is not None:
         raw_prev = (k - 1) * h * sp / safe
         frac = tl.minimum(raw, 1.0)
         frac_prev = tl.minimum(raw_prev, 1.0)
-        dfrac = tl.where(slow & (raw <= 1.0), -raw / safe, 0.0)
-        dprev = tl.where(slow & (raw_prev <= 1.0), -raw_prev / safe, 0.0)
+        dfrac = tl.where(slow & (raw < 1.0), -raw / safe, 0.0)
+        dprev = tl.where(slow & (raw_prev < 1.0), -raw_prev / safe, 0.0)
         adot = ax * dx + ay * dy
         cdot = cx * dx + cy * dy
         ux = dx / safe

@@ -431,8 +431,8 @@ inline void reference_adjoint(const T* d, T speed, int64_t k, T h, T vmax, const
   const bool slow = !(speed > vmax);
   const T raw = T(k) * h * speed / safe, raw_prev = T(k - 1) * h * speed / safe;
   const T frac = std::min(raw, T(1)), frac_prev = std::min(raw_prev, T(1));
-  const T dfrac = slow && raw <= T(1) ? -raw / safe : T(0);             // d frac / d d = dfrac * u
-  const T dprev = slow && raw_prev <= T(1) ? -raw_prev / safe : T(0);
+  const T dfrac = slow && raw < T(1) ? -raw / safe : T(0);             // d frac / d d = dfrac * u
+  const T dprev = slow && raw_prev < T(1) ? -raw_prev / safe : T(0);
   const T adot = a[0] * d[0] + a[1] * d[1], cdot = c[0] * d[0] + c[1] * d[1];
   for (int i = 0; i < 2; ++i) {
     const T u = i == 0 ? ux : uy;
