@@ -24,8 +24,8 @@ def backend_line() -> str:
         warnings.simplefilter("ignore", kernel.KernelUnavailableWarning)
         reason = kernel.unavailable_reason()
     if reason is None:
-        return (f"fused C++ kernel ({kernel.lanes()} ropes per lane group; library {kernel.library_path()}); "
-                f"the PID controller uses the eager torch path")
+        return (f"fused C++ kernel ({kernel.lanes()} ropes per lane group, pegs and pins included; library "
+                f"{kernel.library_path()}); the PID controller uses the eager torch path")
     return (f"eager torch path, about 100-500x slower per move: the fused C++ kernel is unavailable ({reason}); "
             f"install g++ (or clang++) or set $CXX, then rerun")
 
@@ -39,7 +39,8 @@ def gpu_backend_line() -> str:
         return f"eager torch path: {reason}"
     import triton
     here = "" if torch.cuda.is_available() else "; no CUDA device here"
-    return f"fused Triton kernels, forward and adjoint (triton {triton.__version__}){here}"
+    return (f"fused Triton kernels, forward and adjoint (triton {triton.__version__}); moves with pegs or a pin on the "
+            f"eager torch path{here}")
 
 
 def devices_line() -> str:
