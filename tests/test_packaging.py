@@ -76,7 +76,10 @@ def test_wheel_holds_every_module_the_params_and_the_kernel_source(installed_whe
     params = {f"diffdlo/_params/{p.name}" for p in (ROOT / "params").glob("*.yaml")}
     assert "diffdlo/_params/cable.yaml" in params and "diffdlo/_params/sac.yaml" in params
     assert params <= names, sorted(params - names)
-    assert {f"diffdlo/csrc/{p.name}" for p in (ROOT / "diffdlo" / "csrc").glob("*.cpp")} <= names
+    kernels = {f"diffdlo/backends/csrc/{p.name}" for p in (ROOT / "diffdlo" / "backends" / "csrc").glob("*.cpp")}
+    assert "diffdlo/backends/csrc/cable.cpp" in kernels and kernels <= names, sorted(kernels - names)
+    layouts = {f"diffdlo/layouts/{p.name}" for p in (ROOT / "diffdlo" / "layouts").glob("*.yaml")}
+    assert "diffdlo/layouts/u_two_pegs.yaml" in layouts and layouts <= names, sorted(layouts - names)
 
 
 def test_installed_wheel_runs_the_env_and_loads_presets_outside_the_repository(installed_wheel, tmp_path):

@@ -1,0 +1,223 @@
+"""The routing task's rules (the wire-harness task): a board of pegs and a route, the rope's shape at full length
+passing each peg on a given side. Batched functions of tensors; device and dtype follow the inputs.
+
+- ``winding``: how far a rope turns round each peg, the topological part of the task: a rope that matches the
+  route's shape but passes a peg on the other side turns about 2 pi more or less round it;
+- ``sides_kept`` and ``route_errors``: the two halves of success (every peg on the route's side, the mean node
+  error on the board under the tolerance; absolute positions: the pegs fix the route on the board);
+- ``Layout``: pegs and a route, checked (no overlapping pegs, a route of the rope's length clear of every peg);
+  ``random_layout`` draws one (2-4 pegs, some wrapped); ``load_layout`` reads the fixed ones (diffdlo/layouts/);
+- ``start_beside``: a start shape off the route and clear of the pegs.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from . import contact
+from .params import CableParams
+from .shapes import TargetError, check_target, random_curve, random_shape
+
+LAYOUTS_DIR = Path(str(resources.files(__package__) / "layouts"))
+# The fixed layouts no learner trains on (the comparison's held-out boards); the others are for training and tests.
+HELD_OUT_LAYOUTS = ("hook_wrap", "zigzag_four")
+# A rope passes a peg on the route's side when it turns round the peg within this much of the route's turn [rad]:
+# the other side differs by 2 pi (for ends near the route's), so pi splits the two.
+SIDE_MARGIN = math.pi
+# Gap [m] between a peg and the route's surface where ``random_layout`` places a peg against a bend, and the least
+# gap between two pegs' surfaces (room for the rope, two radii, to pass between).
+PEG_CLEARANCE = 0.001
+# A drawn board fits in this square [m] centred at the origin (the pictures' view window is 1 m).
+BOARD = 0.8
+# ``random_layout``'s pegs: the route turns at least this much round each [rad] (a peg it passes by its side).
+MIN_TURN = 0.5 * math.pi
+
+
+class LayoutError(ValueError):
+    """A layout with overlapping pegs, a route not of the rope's length, through a peg, or without pegs."""
+
+
+# ====================================================================== the rules
+def winding(pos: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
+    """(..., N, 2) ropes, (..., K, 2) peg centres -> (..., K): the signed angle [rad] each rope turns round each
+    centre from its node 0 to its last node (positive counter-clockwise). Exact for ropes whose links clear the
+    centres (every admissible rope: its axis is outside every peg)."""
+    rel = pos.unsqueeze(-3) - centres.unsqueeze(-2)                      # (..., K, N, 2)
+    angle = torch.atan2(rel[..., 1], rel[..., 0])
+    return torch.remainder(angle.diff(dim=-1) + math.pi, 2 * math.pi).sub(math.pi).sum(-1)
+
+
+def sides_kept(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
+    """(B, N, 2) ropes, (B, N, 2) routes, (B, K, 3) pegs -> (B,) bool: every peg passed on the route's side (the
+    rope's winding round it within SIDE_MARGIN of the route's)."""
+    centres = pegs[..., :2]
+    return ((winding(pos, centres) - winding(route, centres)).abs() < SIDE_MARGIN).all(-1)
+
+
+def route_errors(pos: torch.Tensor, route: torch.Tensor) -> torch.Tensor:
+    """(B, N) each node's distance [m] to its place on the route, on the board (no alignment: the pegs fix it)."""
+    return (pos - route.expand_as(pos)).norm(dim=-1)
+
+
+# ====================================================================== layouts
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """A board: pegs (K, 3) of (x, y, radius) [m] and the route (N, 2) the rope is to lie along; ``name`` for people.
+    ``check`` refuses what no rope can be laid on."""
+
+    pegs: torch.Tensor
+    route: torch.Tensor
+    name: str = "custom"
+
+    def check(self, p: CableParams) -> Layout:
+        """This layout, float64, checked: LayoutError naming the bad value."""
+        pegs, route = torch.as_tensor(self.pegs, dtype=torch.float64), torch.as_tensor(self.route, dtype=torch.float64)
+        if pegs.ndim != 2 or pegs.shape[-1] != 3 or pegs.shape[0] == 0:
+            raise LayoutError(f"layout {self.name!r}: pegs must be a (K, 3) array of (x, y, radius) [m] with K >= 1 "
+                              f"(a route needs a peg), got shape {tuple(pegs.shape)}")
+        try:
+            pegs = contact.check_pegs(pegs, 1, torch.float64, torch.device("cpu"))[0]
+        except contact.PegError as exc:
+            raise LayoutError(f"layout {self.name!r}: {exc}") from exc
+        try:
+            check_target(route, p, f"layout {self.name!r}: the route")
+        except TargetError as exc:
+            raise LayoutError(str(exc)) from exc
+        gap = (pegs[:, None, :2] - pegs[None, :, :2]).norm(dim=-1) - pegs[:, None, 2] - pegs[None, :, 2]
+        gap = gap + torch.diag(torch.full((len(pegs),), math.inf, dtype=torch.float64))
+        if bool((gap < 0).any()):
+            i, j = (int(v) for v in (gap < 0).nonzero()[0])
+            raise LayoutError(f"layout {self.name!r}: pegs {i} {pegs[i].tolist()} and {j} {pegs[j].tolist()} "
+                              f"overlap by {-float(gap[i, j]) * 1e3:.3g} mm")
+        overlap = contact.overlap(route[None], pegs[None], p.rope_radius)[0]          # (L, K)
+        if bool((overlap > 0).any()):
+            link, k = (int(v) for v in (overlap > 0).nonzero()[0])
+            raise LayoutError(f"layout {self.name!r}: the route's link {link}-{link + 1} runs "
+                              f"{float(overlap[link, k]) * 1e3:.3g} mm into peg {k} {pegs[k].tolist()} (a route must "
+                              f"clear every peg by the rope's radius, {p.rope_radius * 1e3:g} mm)")
+        return Layout(pegs, route, self.name)
+
+    def turns(self) -> torch.Tensor:
+        """(K,) the route's winding round each peg [rad]: its sign is the side, its size how far it wraps."""
+        return winding(torch.as_tensor(self.route), torch.as_tensor(self.pegs)[:, :2])
+
+
+def layout_names() -> list[str]:
+    """The fixed layouts shipped in diffdlo/layouts/ (``load_layout`` by name)."""
+    return sorted(f.stem for f in LAYOUTS_DIR.glob("*.yaml"))
+
+
+def load_layout(spec: str | Path, p: CableParams) -> Layout:
+    """A fixed layout by name (``layout_names()``) or from a YAML path holding ``pegs: [[x, y, radius], ...]`` and
+    ``route: [[x, y], ...]`` (N points); checked. LayoutError naming the problem."""
+    path = Path(spec)
+    if path.suffix not in (".yaml", ".yml"):
+        if str(spec) not in layout_names():
+            raise LayoutError(f"no layout {str(spec)!r}: use one of {layout_names()} or a .yaml path")
+        path = LAYOUTS_DIR / f"{spec}.yaml"
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise LayoutError(f"cannot read layout {str(spec)!r}: {exc}") from exc
+    if not isinstance(data, dict) or "pegs" not in data or "route" not in data:
+        raise LayoutError(f"layout {str(spec)!r} must hold 'pegs' and 'route'")
+    try:
+        pegs, route = (torch.tensor(np.asarray(data[key], dtype=np.float64)) for key in ("pegs", "route"))
+    except (TypeError, ValueError) as exc:
+        raise LayoutError(f"layout {str(spec)!r}: pegs and route must be arrays of numbers ({exc})") from exc
+    return Layout(pegs, route, path.stem).check(p)
+
+
+def _normals(route: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per interior node of a route (N, 2): the unit normal towards the inside of its turn (the left of a straight
+    node), and the turn [rad]."""
+    e = route.diff(dim=0)
+    a, b = e[:-1], e[1:]
+    turn = torch.atan2(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0], (a * b).sum(-1))
+    mean = a / a.norm(dim=-1, keepdim=True) + b / b.norm(dim=-1, keepdim=True)
+    left = torch.stack([-mean[:, 1], mean[:, 0]], -1) / mean.norm(dim=-1, keepdim=True)
+    return torch.where(turn.unsqueeze(-1) >= 0, left, -left), turn         # a straight node: its left
+
+
+def peg_against(route: torch.Tensor, node: int, radius: float, p: CableParams, outside: bool = False) -> torch.Tensor:
+    """(3,) a peg of ``radius`` against the inside of the route's turn at interior ``node`` (the route wraps it; with
+    ``outside``, against the outside: the route passes it), PEG_CLEARANCE from the route's surface."""
+    inward, turn = _normals(route)
+    reach = radius + p.rope_radius + PEG_CLEARANCE
+    if not outside:                       # inside a turn the two links at the node lean towards the peg
+        reach = reach / math.cos(0.5 * float(turn[node - 1]))
+    centre = route[node] + (-1.0 if outside else 1.0) * inward[node - 1] * reach
+    return torch.cat([centre, torch.tensor([radius], dtype=route.dtype)])
+
+
+def random_layout(p: CableParams, generator: torch.Generator, pegs: tuple[int, int] = (2, 4),
+                  radius: tuple[float, float] = (0.008, 0.02), max_turn_deg: float = 20.0,
+                  tries: int = 200) -> Layout:
+    """A random board: a smooth route of the rope's length (``random_curve`` with turns up to ``max_turn_deg`` per
+    node) and 2-4 pegs, each against the inside of one of the route's bends (the route wraps it) or, one in three,
+    against the outside of a bend or a straight part (the route passes it), PEG_CLEARANCE from the route's surface,
+    the route turning at least MIN_TURN round it, with room for the rope between any two pegs and within the BOARD.
+    Drawn from ``generator`` (CPU, float64)."""
+    for _ in range(tries):
+        route = random_curve(1, p, generator, max_turn_deg=max_turn_deg, dtype=torch.float64)[0]
+        _, turn = _normals(route)
+        k = int(torch.randint(pegs[0], pegs[1] + 1, (1,), generator=generator))
+        # candidate nodes, far enough from the ends to be passed, the sharper turns first
+        nodes = torch.arange(2, p.n_nodes - 2)
+        order = torch.argsort(turn[nodes - 1].abs() + 0.2 * torch.rand(len(nodes), generator=generator,
+                                                                       dtype=torch.float64), descending=True)
+        chosen: list[torch.Tensor] = []
+        for node in nodes[order].tolist():
+            if len(chosen) == k:
+                break
+            r = radius[0] + (radius[1] - radius[0]) * float(torch.rand(1, generator=generator, dtype=torch.float64))
+            peg = peg_against(route, node, r, p, outside=float(torch.rand(1, generator=generator)) < 1 / 3)
+            centre = peg[:2]
+            if contact.overlap(route[None], peg[None, None], p.rope_radius).max() > -0.5 * PEG_CLEARANCE:
+                continue                                   # another part of the route runs through it
+            if any(float((peg[:2] - q[:2]).norm() - peg[2] - q[2]) < 2 * p.rope_radius + PEG_CLEARANCE
+                   for q in chosen):
+                continue
+            if float((centre.abs() + r).max()) > BOARD / 2:
+                continue
+            if abs(float(winding(route, centre[None])[0])) < MIN_TURN:
+                continue                                   # hardly passed: no side to keep
+            chosen.append(peg)
+        if len(chosen) == k:
+            return Layout(torch.stack(chosen), route, "random").check(p)
+    raise LayoutError(f"no layout with {pegs} pegs found in {tries} tries (max_turn_deg={max_turn_deg})")
+
+
+def start_beside(layout: Layout, p: CableParams, generator: torch.Generator, spread: float = 0.15,
+                 tries: int = 200) -> torch.Tensor:
+    """(N, 2) a start shape off the route: a random rope (the thesis's sigma) centred ``spread`` [m] or less from
+    the route's centre, its axis clear of every peg by the rope's radius and off the route (its mean node error
+    above 5 cm). Drawn from ``generator``."""
+    pegs = layout.pegs.to(torch.float64)
+    for _ in range(tries):
+        shape = random_shape(1, p, generator, dtype=torch.float64)[0]
+        offset = spread * (2 * torch.rand(2, generator=generator, dtype=torch.float64) - 1)
+        shape = shape + layout.route.mean(0) + offset
+        if float(contact.depth(shape[None], pegs[None], p.rope_radius)) > -PEG_CLEARANCE:
+            continue
+        if float(route_errors(shape[None], layout.route)[0].mean()) < 0.05:
+            continue
+        return shape
+    raise LayoutError(f"no start clear of the pegs of layout {layout.name!r} found in {tries} tries")
+
+
+def layout_from_data(data: Any, p: CableParams, name: str = "custom") -> Layout:
+    """A Layout from a mapping {pegs, route} of arrays (or a Layout), checked."""
+    if isinstance(data, Layout):
+        return data.check(p)
+    if not isinstance(data, dict) or set(data) < {"pegs", "route"}:
+        raise LayoutError(f"a layout must be a Layout or a mapping with 'pegs' and 'route', got {type(data).__name__}")
+    return Layout(torch.as_tensor(np.asarray(data["pegs"], dtype=np.float64)),
+                  torch.as_tensor(np.asarray(data["route"], dtype=np.float64)), name).check(p)
