@@ -16,6 +16,7 @@ TARGET_COLOR = (40, 90, 220)      # blue target
 BACKGROUND = (255, 255, 255)      # white table
 ROPE_END_COLOR = (30, 150, 40)    # green dot on the rope's node 0 (env option mark_end)
 TARGET_END_COLOR = (250, 170, 0)  # amber dot on the target's node 0
+PEG_COLOR = (110, 110, 110)       # grey pegs (a route's board)
 
 
 def pixel_centres(size: int, view_size: float, center: tuple[float, float] = (0.0, 0.0),
@@ -92,6 +93,18 @@ def end_marker(polylines: torch.Tensor, size: int, view_size: float, diameter: f
     first = polylines[:, :1]
     return coverage(torch.cat([first, first], dim=1), size, view_size,
                     diameter if diameter is not None else 2.5 * view_size / size, center)
+
+
+def discs(circles: torch.Tensor, size: int, view_size: float,
+          center: tuple[float, float] = (0.0, 0.0)) -> torch.Tensor:
+    """(B, K, 3) circles (x, y, radius) [m] -> (B, size, size) anti-aliased coverage of their union (rows of radius
+    0 draw nothing)."""
+    grid = pixel_centres(size, view_size, center, circles.device, circles.dtype)            # (S, S, 2)
+    px = view_size / size
+    dist = (grid[None, None] - circles[:, :, None, None, :2]).norm(dim=-1)                  # (B, K, S, S)
+    radius = circles[..., 2][:, :, None, None]
+    cover = ((radius - dist) / px + 0.5).clamp(0.0, 1.0) * (radius > 0)
+    return cover.amax(1) if circles.shape[1] else grid.new_zeros(circles.shape[0], size, size)
 
 
 def compose(layers: list[tuple[torch.Tensor, tuple[int, int, int]]],

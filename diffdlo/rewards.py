@@ -105,7 +105,16 @@ def is_success(pos: torch.Tensor, target: torch.Tensor, tol: float = 0.01,
     return within_tolerance(errors.mean(-1), errors.amax(-1), tol, worst_tol)
 
 
-REWARDS = ("position_orientation", "abs_diff", "delta_gain", "shape_gain")
+def reward_route_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) ours, for routes (diffdlo/routing.py): 100 x (mean node distance to the target before - after) [cm], on
+    the board (no centroid alignment: the pegs fix where the route lies). eq 2.8's delta_gain per node in cm."""
+    return 100.0 * ((prev_pos - target).norm(dim=-1).mean(-1) - (pos - target).norm(dim=-1).mean(-1))
+
+
+REWARDS = ("position_orientation", "abs_diff", "delta_gain", "shape_gain", "route_gain")
+# The rewards that see where the rope lies on the board (the others align centroids or compare shapes only): the
+# ones a route can be scored by.
+BOARD_REWARDS = ("abs_diff", "delta_gain", "route_gain")
 
 
 def reward(kind: str, prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -118,4 +127,6 @@ def reward(kind: str, prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.T
         return reward_delta_gain(prev_pos, pos, target)
     if kind == "shape_gain":
         return reward_shape_gain(prev_pos, pos, target)
+    if kind == "route_gain":
+        return reward_route_gain(prev_pos, pos, target)
     raise ValueError(f"unknown reward {kind!r}: use one of {list(REWARDS)}")

@@ -56,9 +56,10 @@ def winding(pos: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
 
 def sides_kept(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
     """(B, N, 2) ropes, (B, N, 2) routes, (B, K, 3) pegs -> (B,) bool: every peg passed on the route's side (the
-    rope's winding round it within SIDE_MARGIN of the route's)."""
+    rope's winding round it within SIDE_MARGIN of the route's). Rows of radius 0 are no pegs (the env's padding)."""
     centres = pegs[..., :2]
-    return ((winding(pos, centres) - winding(route, centres)).abs() < SIDE_MARGIN).all(-1)
+    kept = (winding(pos, centres) - winding(route.expand_as(pos), centres)).abs() < SIDE_MARGIN
+    return (kept | (pegs[..., 2] <= 0)).all(-1)
 
 
 def route_errors(pos: torch.Tensor, route: torch.Tensor) -> torch.Tensor:
@@ -211,6 +212,24 @@ def start_beside(layout: Layout, p: CableParams, generator: torch.Generator, spr
             continue
         return shape
     raise LayoutError(f"no start clear of the pegs of layout {layout.name!r} found in {tries} tries")
+
+
+def padded(pegs: torch.Tensor, slots: int) -> torch.Tensor:
+    """(K, 3) pegs -> (slots, 3): the pegs, then rows of zeros (no peg: radius 0). LayoutError past ``slots``."""
+    if len(pegs) > slots:
+        raise LayoutError(f"a layout of {len(pegs)} pegs does not fit the env's max_pegs={slots}")
+    return torch.cat([pegs, pegs.new_zeros(slots - len(pegs), 3)])
+
+
+# Where the simulator is given the padding's empty rows: a peg far off the board (one distance test per link).
+FAR_PEG = (1.0e3, 1.0e3, 1.0e-3)
+
+
+def simulator_pegs(pegs: torch.Tensor) -> torch.Tensor:
+    """(B, K, 3) pegs with empty rows (radius 0) -> the same with those rows moved far off the board, as
+    ``Simulator.move`` takes them (it refuses a radius of 0)."""
+    far = torch.tensor(FAR_PEG, dtype=pegs.dtype, device=pegs.device).expand_as(pegs)
+    return torch.where((pegs[..., 2:] > 0), pegs, far)
 
 
 def layout_from_data(data: Any, p: CableParams, name: str = "custom") -> Layout:

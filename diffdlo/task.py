@@ -3,8 +3,9 @@
 Everything that says what the task IS lives here; the env (diffdlo/envs), the planners, PlaNet and the learners
 call these functions rather than restating them:
 
-- targets: ``resolve_target`` (a name, an (N, 2) array, a .npy/.yaml file or a family drawn anew per episode) and
-  ``draw_target`` (one episode's target from that episode's generator);
+- targets: ``resolve_target`` (a name, an (N, 2) array, a .npy/.yaml file, a family drawn anew per episode, or a
+  route among pegs: "route" drawn anew, "route:NAME" a fixed layout) and ``draw_target`` / ``draw_route`` (one
+  episode's target, or layout, from that episode's generator); the routing rules themselves are diffdlo/routing.py's;
 - actions: ``decode_node`` / ``decode_drag`` / ``encode_node_action`` (the node action, eq 2.6),
   ``decode_pixel_node`` (the pixel action, eq 2.5), ``decode_action`` (either);
 - the greedy move (the node farthest from its place, dragged towards it): ``greedy_drags``;
@@ -25,6 +26,7 @@ import torch
 from gymnasium import spaces
 
 from . import image as rimage
+from . import routing
 from .params import CableParams
 from .rewards import is_success, node_errors, orientation_error, reward as move_reward, within_tolerance
 from .shapes import CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape
@@ -38,8 +40,11 @@ POINT_OBS = ("points", "perceived")
 COORDINATE_OBS = ("points", "distance", "perceived")
 PICTURE_OBS = ("image", "image_single")
 DRAWN_OBS = PICTURE_OBS + ("perceived",)
-ACTION_TYPES = ("node", "pixel")
-ACTION_DIMS = {"node": 3, "pixel": 4}
+ACTION_TYPES = ("node", "pixel", "node_pin")
+ACTION_DIMS = {"node": 3, "pixel": 4, "node_pin": 4}
+ROUTE = "route"                # the routing family: a random layout of pegs and a route per episode
+ROUTE_PREFIX = "route:"        # a fixed layout: "route:NAME" (diffdlo/layouts) or "route:PATH.yaml"
+ROUTE_OBS = ("points", "image", "image_single")       # the observations that carry the pegs
 EXIT_RULES = ("truncate", "fail")
 CUSTOM = "custom"       # the label of a target given as an array or a file
 
@@ -49,20 +54,39 @@ def resolve_target(spec: Any, p: CableParams, device: torch.device | str = "cpu"
                    dtype: torch.dtype = torch.float32) -> str | torch.Tensor:
     """A family in TARGET_FAMILIES (returned as is: drawn per episode by ``draw_target``) or a fixed target as an
     (N, 2) tensor (a name in TARGET_NAMES, an (N, 2) array/tensor, or a .npy/.yaml path). Raises TargetError."""
-    if isinstance(spec, str) and spec in TARGET_FAMILIES:
+    if isinstance(spec, str) and spec in TARGET_FAMILIES + (ROUTE,):
         return spec
+    if isinstance(spec, routing.Layout):
+        return spec.check(p)
+    if isinstance(spec, str) and spec.startswith(ROUTE_PREFIX):
+        try:
+            return routing.load_layout(spec[len(ROUTE_PREFIX):], p)
+        except routing.LayoutError as exc:
+            raise TargetError(f"bad target {spec!r}: {exc}") from exc
     try:
         return target_shape(spec, p, device, dtype)
     except TargetError as exc:
         raise TargetError(f"bad target {spec if isinstance(spec, (str, Path)) else type(spec).__name__!r}: "
-                          f"{exc} (allowed: {list(TARGET_FAMILIES)}, {list(TARGET_NAMES)}, an (N, 2) array or a "
-                          f".npy/.yaml path)") from exc
+                          f"{exc} (allowed: {list(TARGET_FAMILIES)}, {list(TARGET_NAMES)}, an (N, 2) array, a "
+                          f".npy/.yaml path, {ROUTE!r} or '{ROUTE_PREFIX}NAME' with NAME in "
+                          f"{routing.layout_names()} or a layout .yaml)") from exc
+
+
+def is_route(spec: Any) -> bool:
+    """Whether a target spec (as given or resolved) is a route among pegs."""
+    return isinstance(spec, routing.Layout) or (isinstance(spec, str) and (spec == ROUTE or
+                                                                           spec.startswith(ROUTE_PREFIX)))
 
 
 def target_label(spec: Any) -> str:
-    """The name of a target spec as a person reads it: a name or family as is, a file by its stem, else "custom"."""
-    if isinstance(spec, str) and (spec in TARGET_NAMES or spec in TARGET_FAMILIES):
+    """The name of a target spec as a person reads it: a name or family as is, a file by its stem, a fixed route
+    by its layout's name, else "custom"."""
+    if isinstance(spec, str) and (spec in TARGET_NAMES or spec in TARGET_FAMILIES or spec == ROUTE):
         return spec
+    if isinstance(spec, routing.Layout):
+        return spec.name
+    if isinstance(spec, str) and spec.startswith(ROUTE_PREFIX):
+        return Path(spec[len(ROUTE_PREFIX):]).stem
     if isinstance(spec, (str, Path)) and str(spec).endswith((".npy", ".yaml", ".yml")):
         return Path(spec).stem
     return CUSTOM
@@ -84,6 +108,14 @@ def draw_target(spec: str | torch.Tensor, rng: np.random.Generator, p: CablePara
         return random_curve(1, p, curve_gen, device, dtype, curve_max_turn_deg)[0], spec
     name = next((n for n, t in named.items() if t.shape == spec.shape and bool(torch.equal(t, spec))), CUSTOM)
     return spec, name
+
+
+def draw_route(spec: str | routing.Layout, rng: np.random.Generator, p: CableParams) -> routing.Layout:
+    """One episode's layout for a resolved route spec: ``"route"`` a random one (routing.random_layout, from a
+    generator seeded by ``rng``), a Layout itself."""
+    if isinstance(spec, routing.Layout):
+        return spec
+    return routing.random_layout(p, torch.Generator().manual_seed(int(rng.integers(0, 2**62))))
 
 
 # ====================================================================== actions (eq 2.5, 2.6)
@@ -129,6 +161,18 @@ def decode_action(action_type: str, actions: torch.Tensor, pos: torch.Tensor, p:
     return decode_pixel_node(actions[:, :2], pos, view_size), delta
 
 
+def decode_pin(a: torch.Tensor, node: torch.Tensor, n_nodes: int) -> torch.Tensor:
+    """The "node_pin" action's last entry a in [0, 1] (clipped) -> the node the second gripper holds (B,) int64:
+    round(a N) - 1, so a < 1 / (2 N) is no pin (-1); a pin on the grasped node is no pin either."""
+    pin = torch.round(a.detach().clamp(0.0, 1.0) * n_nodes).to(torch.int64) - 1
+    return torch.where(pin == node, torch.full_like(pin, -1), pin)
+
+
+def encode_pin(pin: torch.Tensor, n_nodes: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """The inverse of ``decode_pin``: pins (...,) in [-1, N - 1] -> the action entries that decode to them."""
+    return (pin.to(dtype) + 1) / n_nodes
+
+
 def greedy_drags(pos: torch.Tensor, target: torch.Tensor, max_disp: float) -> tuple[torch.Tensor, torch.Tensor]:
     """The greedy move's ingredients for rope(s) (..., N, 2): every node's gap to its place in the target moved onto
     the rope's centroid, capped at ``max_disp`` in length (..., N, 2), and the uncapped gap lengths (..., N). The
@@ -141,7 +185,8 @@ def greedy_drags(pos: torch.Tensor, target: torch.Tensor, max_disp: float) -> tu
 
 # ====================================================================== rewards, success, episode end
 def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torch.Tensor,
-                 steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                 steps: torch.Tensor, pegs: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Score the moves prev -> new (B, N, 2) towards ``target`` after ``steps`` (B,) moves (this one included), by
     the rules of resolved env options (``EnvOptions.resolve()``, an env's ``options``): reward, success_tol,
     success_worst_tol, max_steps, success_bonus, step_penalty, on_exit, exit_penalty and workspace (thesis
@@ -149,12 +194,15 @@ def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torc
 
     Returns (reward, terminated, truncated, success), each (B,). Success (``is_success``): shape_error <
     success_tol and, when success_worst_tol is set, worst_node_error < success_worst_tol; it terminates with reward
-    success_bonus. A node outside the workspace rectangle (centred at the origin) truncates
+    success_bonus. A route (``pegs`` (B, K, 3) given) is measured on the board (``route_success``). A node outside the workspace rectangle (centred at the origin) truncates
     the episode (on_exit "truncate", Algorithm 2) or terminates it with reward -exit_penalty (on_exit "fail");
     reaching max_steps truncates. Every other move gets the named reward minus step_penalty.
     """
     r = move_reward(rules.reward, prev, new, target)
-    success = is_success(new, target, rules.success_tol, rules.success_worst_tol)
+    if pegs is None:
+        success = is_success(new, target, rules.success_tol, rules.success_worst_tol)
+    else:
+        success = route_success(new, target, pegs, rules.success_tol, rules.success_worst_tol)
     half = torch.tensor(rules.workspace, device=new.device, dtype=new.dtype) / 2
     outside = (new.abs() > half).flatten(1).any(1) & ~success
     failed = outside if rules.on_exit == "fail" else torch.zeros_like(outside)
@@ -164,20 +212,33 @@ def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torc
     return torch.where(failed, torch.full_like(r, -rules.exit_penalty), r), terminated, truncated, success
 
 
+def route_success(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor, tol: float,
+                  worst_tol: float | None = None) -> torch.Tensor:
+    """(B,) bool: the rope lies along the route ON THE BOARD (mean node distance < tol, the worst < worst_tol where
+    given; no centroid alignment) AND passes every peg on the route's side (routing.sides_kept)."""
+    errors = routing.route_errors(pos, route)
+    return within_tolerance(errors.mean(-1), errors.amax(-1), tol, worst_tol) & routing.sides_kept(pos, route, pegs)
+
+
 def task_metrics(pos: torch.Tensor, target: torch.Tensor, success_tol: float,
-                 success_worst_tol: float | None = None) -> dict[str, torch.Tensor]:
+                 success_worst_tol: float | None = None, pegs: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """The per-rope figures an env reports after every reset and move: shape_error [m] (the mean node distance),
-    worst_node_error [m] (the largest), orientation_error [rad], is_success (``is_success``'s test)."""
-    errors = node_errors(pos, target)
+    worst_node_error [m] (the largest), orientation_error [rad], sides_kept (every peg on the route's side; True
+    without pegs), is_success (``is_success``'s test). For a route (``pegs`` given) the distances are on the board
+    and success is ``route_success``."""
+    errors = node_errors(pos, target) if pegs is None else routing.route_errors(pos, target)
     err, worst = errors.mean(-1), errors.amax(-1)
+    sides = (torch.ones(pos.shape[0], dtype=torch.bool, device=pos.device) if pegs is None
+             else routing.sides_kept(pos, target, pegs))
     return {"shape_error": err.detach(), "worst_node_error": worst.detach(),
-            "orientation_error": orientation_error(pos, target).detach(),
-            "is_success": within_tolerance(err, worst, success_tol, success_worst_tol)}
+            "orientation_error": orientation_error(pos, target).detach(), "sides_kept": sides,
+            "is_success": within_tolerance(err, worst, success_tol, success_worst_tol) & sides}
 
 
 # ====================================================================== observations
-def observation_space(obs_type: str, p: CableParams, image_size: int) -> spaces.Space:
-    """The gymnasium space of one rope's observation of type ``obs_type`` (see ``observe``)."""
+def observation_space(obs_type: str, p: CableParams, image_size: int, max_pegs: int = 0) -> spaces.Space:
+    """The gymnasium space of one rope's observation of type ``obs_type`` (see ``observe``); with ``max_pegs`` > 0
+    (a route) "points" carries the pegs too."""
     # Bounds of a node coordinate [m]: every node is inside the workspace before a step (else the episode has
     # ended) and a step moves the grasped node by at most max_disp, the rest following within the rope length.
     n, s = p.n_nodes, image_size
@@ -185,6 +246,9 @@ def observation_space(obs_type: str, p: CableParams, image_size: int) -> spaces.
     points = spaces.Box(-bound, bound, (n, 2), np.float32)
     img = spaces.Box(0, 255, (s, s, 3), np.uint8)
     if obs_type in POINT_OBS:
+        if max_pegs > 0:
+            pegs = spaces.Box(-bound, bound, (max_pegs, 3), np.float32)
+            return spaces.Dict({"node_poses": points, "target_poses": points, "pegs": pegs})
         return spaces.Dict({"node_poses": points, "target_poses": points})
     if obs_type == "distance":
         return spaces.Box(-2 * bound, 2 * bound, (n, 2), np.float32)
@@ -199,16 +263,19 @@ class TargetPictures:
     the dot on its node 0."""
     coverage: torch.Tensor
     end: torch.Tensor | None = None
+    pegs: torch.Tensor | None = None        # (B, S, S) the pegs' discs, for a route
 
 
-def target_pictures(target: torch.Tensor, image_size: int, view_size: float, mark_end: bool) -> TargetPictures:
+def target_pictures(target: torch.Tensor, image_size: int, view_size: float, mark_end: bool,
+                    pegs: torch.Tensor | None = None) -> TargetPictures:
     t = target.detach()
     return TargetPictures(rimage.coverage(t, image_size, view_size),
-                          rimage.end_marker(t, image_size, view_size) if mark_end else None)
+                          rimage.end_marker(t, image_size, view_size) if mark_end else None,
+                          None if pegs is None else rimage.discs(pegs.detach(), image_size, view_size))
 
 
 def observe(obs_type: str, pos: torch.Tensor, target: torch.Tensor, image_size: int = 64, view_size: float = 1.0,
-            pictures: TargetPictures | None = None) -> Any:
+            pictures: TargetPictures | None = None, pegs: torch.Tensor | None = None) -> Any:
     """The observation of ropes ``pos`` (B, N, 2) with targets (B, N, 2):
 
     "points": {node_poses, target_poses} (B, N, 2) float32 (the multi-input observation); "distance": rope - target
@@ -216,23 +283,31 @@ def observe(obs_type: str, pos: torch.Tensor, target: torch.Tensor, image_size: 
     and of the target; "image_single": {image}, the rope drawn over the target ("perceived" is the env's: the
     "image" pictures read by its perception network). ``pictures``: the target's layers
     (``target_pictures``, cached per episode by the env; drawn here when None); their ``end`` layer also marks the
-    rope's node 0.
+    rope's node 0. ``pegs`` (B, K, 3) (a route): "points" carries them as "pegs" (rows of zeros: no peg), and the
+    pictures draw them (grey discs under the target and the rope).
     """
     pos, target = pos.detach(), target.detach()
     if obs_type == "points":
-        return {"node_poses": pos.to(torch.float32, copy=True), "target_poses": target.to(torch.float32, copy=True)}
+        obs = {"node_poses": pos.to(torch.float32, copy=True), "target_poses": target.to(torch.float32, copy=True)}
+        if pegs is not None:
+            obs["pegs"] = pegs.detach().to(torch.float32, copy=True)
+        return obs
     if obs_type == "distance":
         return (pos - target).to(torch.float32)
     if obs_type not in PICTURE_OBS:
         raise ValueError(f"observe draws obs_type 'points', 'distance', 'image' or 'image_single', got {obs_type!r} "
                          "(an env reads 'perceived' with its perception)")
     if pictures is None:
-        pictures = target_pictures(target, image_size, view_size, mark_end=False)
+        pictures = target_pictures(target, image_size, view_size, mark_end=False, pegs=pegs)
     rope = [(rimage.coverage(pos, image_size, view_size), rimage.ROPE_COLOR)]
     tgt = [(pictures.coverage, rimage.TARGET_COLOR)]
+    if pictures.pegs is not None:
+        board = (pictures.pegs, rimage.PEG_COLOR)
+        rope.insert(0, board)
+        tgt.insert(0, board)
     if pictures.end is not None:
         rope.append((rimage.end_marker(pos, image_size, view_size), rimage.ROPE_END_COLOR))
         tgt.append((pictures.end, rimage.TARGET_END_COLOR))
     if obs_type == "image":
         return {"image": rimage.compose(rope), "target_image": rimage.compose(tgt)}
-    return {"image": rimage.compose(tgt + rope)}
+    return {"image": rimage.compose(tgt + rope[1:] if pictures.pegs is not None else tgt + rope)}

@@ -96,6 +96,7 @@ def test_rewards_hand_computed(small, reward):
     expect = {"abs_diff": -math.sqrt(2) * np.abs(s).sum(),
               "delta_gain": 0.0,
               "shape_gain": 0.0,                                 # the rope stays put: no error removed
+              "route_gain": 0.0,
               # P = 0 (both straight, same links); O: angle(rope) = pi, angle(target) = -pi/2 -> |3pi/2| wrapped
               "position_orientation": -math.pi / 2}[reward]
     assert r == pytest.approx(expect, abs=1e-4)

@@ -2,6 +2,9 @@
 
 - ``DiffDLO/ShapeControl-v0``: ``gymnasium.make`` -> ShapeControlEnv (one rope),
   ``gymnasium.make_vec`` -> ShapeControlVectorEnv (B ropes, one batched simulator call per step).
+- ``DiffDLO/Routing-v0``: the same env laying the rope along a route among pegs (target "route", a random board per
+  episode; reward "route_gain"); any other option as for ShapeControl (target="route:u_two_pegs", action_type=
+  "node_pin", ...).
 - ``BatchedShapeControl`` (core.py): the torch-native batched core both are built on (tensors in, tensors out); its
   state is one ``EnvState`` (state.py), its options one ``EnvOptions`` (options.py). The task's rules are
   diffdlo/task.py's.
@@ -16,6 +19,7 @@ from .state import EnvState
 from .vector import ShapeControlVectorEnv
 
 ENV_ID = "DiffDLO/ShapeControl-v0"
+ROUTING_ENV_ID = "DiffDLO/Routing-v0"
 
 # gymnasium's time limit of the registered spec: the default params' episode length (ShapeControlEnv's docstring
 # says how it meets the env's own max_steps).
@@ -24,6 +28,11 @@ MAX_EPISODE_STEPS = 100
 if ENV_ID not in registry:
     register(id=ENV_ID, entry_point="diffdlo.envs.shape_control:ShapeControlEnv",
              vector_entry_point="diffdlo.envs.vector:ShapeControlVectorEnv", max_episode_steps=MAX_EPISODE_STEPS)
+if ROUTING_ENV_ID not in registry:
+    register(id=ROUTING_ENV_ID, entry_point="diffdlo.envs.shape_control:ShapeControlEnv",
+             vector_entry_point="diffdlo.envs.vector:ShapeControlVectorEnv", max_episode_steps=MAX_EPISODE_STEPS,
+             kwargs={"target": "route", "reward": "route_gain"})
 
-__all__ = ["ACTION_TYPES", "DEFAULT_VIEW_SIZE", "ENV_ID", "MAX_EPISODE_STEPS", "OBS_TYPES", "BatchedShapeControl",
+__all__ = ["ACTION_TYPES", "DEFAULT_VIEW_SIZE", "ENV_ID", "MAX_EPISODE_STEPS", "OBS_TYPES", "ROUTING_ENV_ID",
+           "BatchedShapeControl",
            "EnvOptions", "EnvState", "ShapeControlEnv", "ShapeControlVectorEnv"]

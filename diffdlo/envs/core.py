@@ -18,7 +18,7 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 
 from .. import image as rimage
-from .. import task
+from .. import routing, task
 from ..shapes import TARGET_NAMES, check_finite_nodes, check_link_lengths, check_shape, target_shape
 from ..simulator import Simulator
 from ..task import ACTION_DIMS
@@ -26,7 +26,7 @@ from .options import EnvOptions, _choice_error, check_actions, env_options
 from .state import EnvState
 
 RENDER_SIZE = 256
-INFO_KEYS = ("shape_error", "worst_node_error", "orientation_error", "is_success", "node", "substeps")
+INFO_KEYS = ("shape_error", "worst_node_error", "orientation_error", "sides_kept", "is_success", "node", "substeps")
 AUTORESET_MODES = (None, "next_step", "same_step")
 
 
@@ -63,7 +63,10 @@ class BatchedShapeControl:
         self.start = None if o.start is None else self._check_start(o.start)
         self.action_dim = ACTION_DIMS[o.action_type]
         self.single_action_space = spaces.Box(0.0, 1.0, (self.action_dim,), np.float32)
-        self.single_observation_space = task.observation_space(o.obs_type, p, self.image_size)
+        # a route (target "route" or "route:NAME"): pegs on the board, in the state, the moves and the observations
+        self.route = task.is_route(o.target)
+        self.max_pegs = o.max_pegs if self.route else 0
+        self.single_observation_space = task.observation_space(o.obs_type, p, self.image_size, self.max_pegs)
 
         n, b, kw = p.n_nodes, self.num_envs, dict(device=self.device, dtype=dtype)
         self._state = EnvState(
@@ -71,11 +74,13 @@ class BatchedShapeControl:
             steps=torch.zeros(b, dtype=torch.int64, device=self.device),
             info={"shape_error": torch.zeros(b, **kw), "worst_node_error": torch.zeros(b, **kw),
                   "orientation_error": torch.zeros(b, **kw),
+                  "sides_kept": torch.ones(b, dtype=torch.bool, device=self.device),
                   "is_success": torch.zeros(b, dtype=torch.bool, device=self.device),
                   "node": torch.full((b,), -1, dtype=torch.int64, device=self.device),
                   "substeps": torch.zeros(b, dtype=torch.int64, device=self.device)},
             target_names=[task.CUSTOM] * b, target_spec=task.resolve_target(o.target, p, self.device, dtype),
-            rngs=[None] * b, needs_reset=torch.zeros(b, dtype=torch.bool))
+            rngs=[None] * b, needs_reset=torch.zeros(b, dtype=torch.bool),
+            pegs=torch.zeros(b, self.max_pegs, 3, **kw) if self.route else None)
         self._pictures: task.TargetPictures | None = None     # the targets' image layers, drawn once per episode
         self.has_reset = False
 
@@ -119,7 +124,12 @@ class BatchedShapeControl:
         return s.to(device=self.device, dtype=self.dtype)
 
     def set_target(self, spec: Any) -> None:
-        """Draw the targets of later resets from ``spec`` (any ``target`` argument). Raises TargetError."""
+        """Draw the targets of later resets from ``spec`` (any ``target`` argument; a route env takes routes only,
+        and another env no route: the observations differ). Raises TargetError."""
+        if task.is_route(spec) != self.route:
+            raise ValueError(f"target {spec!r}: a {'route' if self.route else 'shape'} env's targets stay "
+                             f"{'routes' if self.route else 'shapes'} (its observation space has "
+                             f"{'' if self.route else 'no '}pegs); make another env")
         self._state.target_spec = task.resolve_target(spec, self.params, self.device, self.dtype)
 
     def get_state(self, generators: bool = True) -> EnvState:
@@ -158,7 +168,7 @@ class BatchedShapeControl:
         s.info = {k: v.to(self.device) for k, v in s.info.items()}
         missing = [k for k in INFO_KEYS if k not in s.info]   # a state saved before a figure was reported (an older
         if state is None or missing:                          # checkpoint): that figure now, from its ropes
-            metrics = task.task_metrics(s.pos, s.target, self.success_tol, self.success_worst_tol)
+            metrics = task.task_metrics(s.pos, s.target, self.success_tol, self.success_worst_tol, s.pegs)
             s.info.update(metrics if state is None else {k: v for k, v in metrics.items() if k in missing})
         self._state = s
         self._pictures, self._seen_target = None, None
@@ -208,23 +218,35 @@ class BatchedShapeControl:
 
     def _reset_ropes(self, idx: list[int]) -> None:
         s = self._state
-        shapes, targets = [], []
+        shapes, targets, boards = [], [], []
         for i in idx:
             if s.rngs[i] is None:
                 s.rngs[i] = seeding.np_random(None)[0]
             rng = s.rngs[i]
-            tgt, s.target_names[i] = task.draw_target(s.target_spec, rng, self.params, self._named, self.device,
-                                                      self.dtype, self.curve_max_turn_deg)
+            if self.route:
+                layout = task.draw_route(s.target_spec, rng, self.params)
+                tgt, s.target_names[i] = layout.route.to(self.device, self.dtype), task.target_label(s.target_spec)
+                boards.append(routing.padded(layout.pegs, self.max_pegs).to(self.device, self.dtype))
+            else:
+                tgt, s.target_names[i] = task.draw_target(s.target_spec, rng, self.params, self._named, self.device,
+                                                          self.dtype, self.curve_max_turn_deg)
             targets.append(tgt)
             gen = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))   # drawn even for a fixed start
             if self.start is None:
-                shapes.append(self.sim.random_shape(1, generator=gen))
+                shapes.append(routing.start_beside(layout, self.params, gen)[None].to(self.device, self.dtype)
+                              if self.route else self.sim.random_shape(1, generator=gen))
         ids = torch.tensor(idx, device=self.device)
+        pegs = None
+        if self.route:
+            s.pegs[ids] = torch.stack(boards)
+            pegs = routing.simulator_pegs(s.pegs[ids])
         if self.start is None:
-            start, settle_info = self.sim.settle(torch.cat(shapes), return_info=True)
+            start, settle_info = self.sim.settle(torch.cat(shapes), return_info=True, pegs=pegs)
             substeps = settle_info.substeps
         else:
             start = self.start.expand(len(idx), *self.start.shape)
+            if pegs is not None:
+                self.sim._check_pegs(start, pegs)           # a fixed start inside a peg is refused by name
             substeps = torch.zeros(len(idx), dtype=torch.int64)
         s.pos[ids] = start
         s.target[ids] = torch.stack(targets)
@@ -232,10 +254,13 @@ class BatchedShapeControl:
         s.needs_reset[ids.cpu()] = False
         self._update_info(ids, start, s.target[ids], torch.full((len(idx),), -1, dtype=torch.int64), substeps)
         if self._pictures is not None:
-            fresh = task.target_pictures(s.target[ids], self.image_size, self.view_size, self.mark_end)
+            fresh = task.target_pictures(s.target[ids], self.image_size, self.view_size, self.mark_end,
+                                         None if s.pegs is None else s.pegs[ids])
             self._pictures.coverage[ids] = fresh.coverage
             if fresh.end is not None:
                 self._pictures.end[ids] = fresh.end
+            if fresh.pegs is not None:
+                self._pictures.pegs[ids] = fresh.pegs
             if self._seen_target is not None:
                 pictures = task.observe("image", start, s.target[ids], self.image_size, self.view_size, fresh)
                 self._seen_target[ids] = self.perception.read(pictures["target_image"], rope=False)
@@ -272,12 +297,15 @@ class BatchedShapeControl:
         if idx:
             s, ids = self._state, torch.tensor(idx, device=self.device)
             node, delta = self.decode(a)
+            pin = task.decode_pin(a[:, 3], node, self.params.n_nodes)[ids] if self.action_type == "node_pin" else None
             prev, target = s.pos[ids], s.target[ids]
-            new, move_info = self.sim.move(prev, node[ids], delta[ids], return_info=True)
+            pegs = None if s.pegs is None else s.pegs[ids]
+            new, move_info = self.sim.move(prev, node[ids], delta[ids], None if pegs is None else
+                                           routing.simulator_pegs(pegs), pin, return_info=True)
             s.pos[ids] = new
             s.steps[ids] += 1
             self._update_info(ids, new, target, node[ids], move_info.substeps)
-            r, term, trunc, _ = task.step_outcome(self.options, prev, new, target, s.steps[ids])
+            r, term, trunc, _ = task.step_outcome(self.options, prev, new, target, s.steps[ids], pegs)
             reward[ids], terminated[ids], truncated[ids] = r, term, trunc
         ended = (terminated | truncated).cpu()
         if autoreset == "next_step":
@@ -294,17 +322,19 @@ class BatchedShapeControl:
         return obs, reward, terminated, truncated, info
 
     def _update_info(self, ids, pos, target, node, substeps) -> None:
-        info = self._state.info
-        for k, v in task.task_metrics(pos, target, self.success_tol, self.success_worst_tol).items():
+        info, pegs = self._state.info, self._state.pegs
+        for k, v in task.task_metrics(pos, target, self.success_tol, self.success_worst_tol,
+                                      None if pegs is None else pegs[ids]).items():
             info[k][ids] = v
         info["node"][ids] = node.to(self.device)
         info["substeps"][ids] = substeps.to(self.device)
 
     # ----------------------------------------------------------------- observations
     def info(self) -> dict[str, torch.Tensor]:
-        """Per-env info tensors (B,): shape_error [m], worst_node_error [m], orientation_error [rad], is_success, node
-        (-1 after a reset), substeps (of the last move, or of the settle after a reset)."""
-        return {k: v.clone() for k, v in self._state.info.items()}
+        """Per-env info tensors (B,): shape_error [m] (a route's on the board), worst_node_error [m],
+        orientation_error [rad], sides_kept (routes only: every peg on the route's side), is_success, node (-1 after
+        a reset), substeps (of the last move, or of the settle after a reset)."""
+        return {k: v.clone() for k, v in self._state.info.items() if self.route or k != "sides_kept"}
 
     def render_images(self, ropes: torch.Tensor | None, targets: torch.Tensor | None,
                       size: int | None = None) -> torch.Tensor:
@@ -317,9 +347,10 @@ class BatchedShapeControl:
         tensor for obs_type="distance"."""
         s = self._state
         if self.obs_type in task.DRAWN_OBS and self._pictures is None:
-            self._pictures = task.target_pictures(s.target, self.image_size, self.view_size, self.mark_end)
+            self._pictures = task.target_pictures(s.target, self.image_size, self.view_size, self.mark_end, s.pegs)
         if self.obs_type != "perceived":
-            return task.observe(self.obs_type, s.pos, s.target, self.image_size, self.view_size, self._pictures)
+            return task.observe(self.obs_type, s.pos, s.target, self.image_size, self.view_size, self._pictures,
+                                s.pegs)
         pictures = task.observe("image", s.pos, s.target, self.image_size, self.view_size, self._pictures)
         if self._seen_target is None:
             self._seen_target = self.perception.read(pictures["target_image"], rope=False)

@@ -14,7 +14,7 @@ import torch
 from .. import task
 from ..utils.checks import check_fields, option
 from ..params import CableParams, load_params
-from ..rewards import REWARDS
+from ..rewards import BOARD_REWARDS, REWARDS
 from ..shapes import CURVE_MAX_TURN_DEG, random_curve
 from ..task import ACTION_TYPES, EXIT_RULES, OBS_TYPES
 
@@ -72,7 +72,10 @@ class EnvOptions:
     target: Any = option("random", help=(
         '"random" (one of TARGET_NAMES drawn at every reset, the thesis\'s default), "random_curve" (a smooth random '
         "curve drawn at every reset, diffdlo.shapes.random_curve), a name in TARGET_NAMES, an (N, 2) array/tensor, "
-        "or a .npy/.yaml path. Drawn targets come from the env's per-env generator, seeded like the start shapes"))
+        'or a .npy/.yaml path; or a ROUTE among pegs (the wire-harness task, diffdlo/routing.py): "route" (a random '
+        'board of 2-4 pegs and a route drawn at every reset, the rope starting beside it) or "route:NAME" (a fixed '
+        "layout of diffdlo/layouts, or route:PATH.yaml). Drawn targets come from the env's per-env generator, seeded "
+        "like the start shapes"))
     obs_type: str = option("points", choices=OBS_TYPES, help=(
         '"points" (dict node_poses, target_poses (N, 2) float32: the multi-input observation), "distance" ((N, 2) '
         'float32 rope - target per node: the single-input observation), "image" (dict image, target_image: RGB '
@@ -83,8 +86,10 @@ class EnvOptions:
     action_type: str = option("node", choices=ACTION_TYPES, help=(
         '"node" (eq 2.6, [0, 1]^3: node = round(a0 (N-1)), dx, dy = a 2 s - s with s = params.action_scale) or '
         '"pixel" (eq 2.5, [0, 1]^4: (a0, a1) = (column, row) fractions of the image view window, row 0 at the top; '
-        'the node nearest to that point is grasped; dx, dy as for "node"). Actions outside [0, 1] are clipped to '
-        "[0, 1]; NaN/inf or a wrong shape raise ValueError"))
+        'the node nearest to that point is grasped; dx, dy as for "node") or "node_pin" (ours, [0, 1]^4: "node"\'s '
+        "three, then a second gripper's node held still during the drag, round(a3 N) - 1: -1 (a3 < 1/(2N)) or the "
+        "grasped node is no pin; diffdlo.task.decode_pin). Actions outside [0, 1] are clipped to [0, 1]; NaN/inf or "
+        "a wrong shape raise ValueError"))
     reward: str = option("position_orientation", choices=REWARDS, help=(
         'one of diffdlo.REWARDS ("position_orientation" eq 2.9-2.11, "abs_diff" eq 2.7, "delta_gain" eq 2.8, '
         '"shape_gain": ours, the centimetres of shape error a move removed)'))
@@ -120,6 +125,9 @@ class EnvOptions:
         "-exit_penalty, so leaving pays nothing more, ever; success is still only is_success)"))
     exit_penalty: float = option(0.0, "(-inf, inf)", says="a finite number", help=(
         'the reward of a move that leaves the workspace under on_exit="fail" is -exit_penalty'))
+    max_pegs: int = option(4, "[1, inf)", says="a positive integer", help=(
+        "a route's peg slots: the points observation's \"pegs\" is (max_pegs, 3) of (x, y, radius) [m], rows of "
+        "zeros past the layout's pegs (routes only)"))
     curve_max_turn_deg: float = option(CURVE_MAX_TURN_DEG, "[0, 90]", help=(
         'the largest turning angle per node [deg] of target="random_curve"'))
     mark_end: bool = option(False, says="True or False", help=(
@@ -143,6 +151,16 @@ class EnvOptions:
                 object.__setattr__(self, f.name, v.item())
         check_fields(self, skip=("curve_max_turn_deg",))   # resolve checks it in random_curve's own words
         self._check_perception()
+
+    def _check_route(self) -> None:
+        """A route is scored on the board and shows its pegs: refuse what cannot (naming it)."""
+        if self.obs_type not in task.ROUTE_OBS:
+            raise ValueError(f"obs_type={self.obs_type!r} cannot show a route's pegs: use one of {list(task.ROUTE_OBS)} "
+                             f"with target={self.target!r}")
+        if self.reward not in BOARD_REWARDS:
+            raise ValueError(f"reward={self.reward!r} does not see where the rope lies on the board (it aligns "
+                             f"centroids or compares shapes): a route (target={self.target!r}) takes one of "
+                             f"{list(BOARD_REWARDS)} (gymnasium.make('DiffDLO/Routing-v0') sets 'route_gain')")
 
     def _check_perception(self) -> None:
         if self.obs_type != "perceived":
@@ -181,6 +199,8 @@ class EnvOptions:
         except ValueError as exc:
             raise ValueError(f"curve_max_turn_deg: {exc}") from exc
         task.resolve_target(self.target, p)         # a bad target is named here, before any simulator is built
+        if task.is_route(self.target):
+            self._check_route()
         return dataclasses.replace(
             self, params=p, action_scale=p.action_scale, max_steps=int(limit),
             success_tol=float(p.success_tol if self.success_tol is None else self.success_tol),

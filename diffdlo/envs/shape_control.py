@@ -28,7 +28,8 @@ class ShapeControlEnv(gym.Env):
     ``render_mode``: None or "rgb_array" (a 256 x 256 RGB picture, rope red over target blue).
 
     Actions outside [0, 1] are clipped to [0, 1]; NaN/inf actions or a wrong shape raise ValueError.
-    ``info``: shape_error [m], worst_node_error [m], orientation_error [rad], is_success, node (grasped node, -1
+    ``info``: shape_error [m] (for a route: on the board), worst_node_error [m], orientation_error [rad],
+    sides_kept (routes only: every peg on the route's side), is_success, node (grasped node, -1
     after reset), substeps.
     ``reset(seed=s, options={"target": spec})``: seeded random start shape + settle; the target spec is kept.
     A diverged simulation raises diffdlo.SimulationError (never a NaN observation).
@@ -63,12 +64,14 @@ class ShapeControlEnv(gym.Env):
         obs, reward, terminated, truncated, info = self.core.step(a.unsqueeze(0))
         return (to_numpy(obs, 0), float(reward[0]), bool(terminated[0]), bool(truncated[0]), self._info(info))
 
-    @staticmethod
-    def _info(info: dict[str, torch.Tensor]) -> dict[str, Any]:
-        return {"shape_error": float(info["shape_error"][0]), "worst_node_error": float(info["worst_node_error"][0]),
-                "orientation_error": float(info["orientation_error"][0]),
-                "is_success": bool(info["is_success"][0]), "node": int(info["node"][0]),
-                "substeps": int(info["substeps"][0])}
+    def _info(self, info: dict[str, torch.Tensor]) -> dict[str, Any]:
+        out = {"shape_error": float(info["shape_error"][0]), "worst_node_error": float(info["worst_node_error"][0]),
+               "orientation_error": float(info["orientation_error"][0]),
+               "is_success": bool(info["is_success"][0]), "node": int(info["node"][0]),
+               "substeps": int(info["substeps"][0])}
+        if self.core.route:                          # a route: every peg on the route's side (part of success)
+            out["sides_kept"] = bool(info["sides_kept"][0])
+        return out
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array":

@@ -1,0 +1,118 @@
+"""The routing env (DiffDLO/Routing-v0, or any env with target "route" / "route:NAME"): gymnasium's and SB3's
+checkers, the native vector env, seeding, success = on the route on the board AND every peg on its side, the pegs
+in the observations and pictures, the pin action, and bad options refused by name."""
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+import diffdlo
+from diffdlo import routing, task
+from diffdlo.envs import ROUTING_ENV_ID, BatchedShapeControl
+from diffdlo.shapes import TargetError
+
+
+def test_the_routing_env_passes_gymnasiums_and_sb3s_checkers():
+    for kwargs in ({}, {"obs_type": "image"}, {"action_type": "node_pin", "target": "route:s_three_pegs"}):
+        env = gym.make(ROUTING_ENV_ID, **kwargs)
+        check_env(env.unwrapped, skip_render_check=True)
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+    sb3_check(gym.make(ROUTING_ENV_ID).unwrapped, warn=False)
+
+
+def test_a_route_episode_is_reproducible_and_its_board_is_in_the_observation():
+    a, b = gym.make(ROUTING_ENV_ID), gym.make(ROUTING_ENV_ID)
+    oa, _ = a.reset(seed=3)
+    ob, _ = b.reset(seed=3)
+    for key in ("node_poses", "target_poses", "pegs"):
+        np.testing.assert_array_equal(oa[key], ob[key])
+    pegs = oa["pegs"]
+    present = pegs[:, 2] > 0
+    assert 2 <= present.sum() <= 4 and (pegs[~present] == 0).all()            # padded with rows of zeros
+    action = a.action_space.sample()
+    for env in (a, b):
+        obs, reward, *_ = env.step(action)
+    assert reward != 0.0
+    other, _ = a.reset(seed=4)
+    assert not np.array_equal(other["pegs"], pegs)
+
+
+def test_success_needs_the_route_on_the_board_and_every_peg_on_its_side():
+    core = BatchedShapeControl(3, target="route:u_two_pegs", reward="route_gain")
+    core.reset(seed=0)
+    layout = routing.load_layout("u_two_pegs", core.params)
+    route = layout.route.float()
+    wrong = route.clone()
+    centre = layout.pegs[0, :2].float()
+    # the U's bend swung to the pegs' far side: the pegs now lie outside the bend (node 7-11 mirrored through the
+    # line of the two pegs), the rest of the route in place
+    far = (wrong[7:12] - centre) * torch.tensor([-1.0, 1.0]) + centre
+    wrong[7:12] = far
+    shifted = route + torch.tensor([0.0, 0.3])                   # the route's shape, away from the board
+    core.set_state(pos=torch.stack([route, wrong, shifted]))
+    info = core.info()
+    assert info["is_success"].tolist() == [True, False, False]
+    assert info["sides_kept"].tolist()[0] and not info["sides_kept"].tolist()[1]
+    assert float(info["shape_error"][2]) == pytest.approx(0.3, abs=1e-6)     # measured on the board
+    assert float(diffdlo.shape_error(shifted[None], route[None])) < 1e-6    # though the shape matches
+
+
+def test_the_pictures_draw_the_pegs():
+    env = BatchedShapeControl(1, target="route:hook_wrap", reward="route_gain", obs_type="image", image_size=128,
+                              view_size=0.5)
+    obs, _ = env.reset(seed=0)
+    grey = torch.tensor(diffdlo.image.PEG_COLOR, dtype=torch.int32)
+    near = ((obs["image"][0].to(torch.int32) - grey).abs().amax(-1) < 40).sum()
+    assert int(near) >= 4
+
+
+def test_a_pin_action_holds_its_node():
+    core = BatchedShapeControl(2, target="route:u_two_pegs", reward="route_gain", action_type="node_pin")
+    core.reset(seed=0)
+    start = core.get_state().pos.clone()
+    n = core.params.n_nodes
+    a = torch.tensor([[0.0, 1.0, 0.5, 0.0], [0.0, 1.0, 0.5, 0.0]])
+    a[1, 3] = float(task.encode_pin(torch.tensor(3), n))                   # rope 1: node 3 pinned, rope 0: none
+    assert task.decode_pin(a[:, 3], torch.tensor([0, 0]), n).tolist() == [-1, 3]
+    assert task.decode_pin(torch.tensor([float(task.encode_pin(torch.tensor(0), n))]), torch.tensor([0]), n).item() == -1
+    core.step(a)
+    moved = (core.get_state().pos - start).norm(dim=-1)
+    assert float(moved[0, 3]) > 1e-3 and float(moved[1, 3]) < float(moved[0, 3])
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    ({"target": "route", "obs_type": "distance"}, ValueError, r"obs_type='distance' cannot show a route's pegs"),
+    ({"target": "route", "reward": "position_orientation"}, ValueError,
+     r"reward='position_orientation' does not see where the rope lies"),
+    ({"target": "route", "reward": "shape_gain"}, ValueError, r"reward='shape_gain'"),
+    ({"target": "route:nope", "reward": "route_gain"}, TargetError, r"no layout 'nope'"),
+    ({"target": "route:zigzag_four", "reward": "route_gain", "max_pegs": 3}, routing.LayoutError,
+     r"a layout of 4 pegs does not fit the env's max_pegs=3"),
+    ({"target": "route", "reward": "route_gain", "max_pegs": 0}, ValueError, r"max_pegs"),
+])
+def test_bad_route_options_are_refused_by_name(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        BatchedShapeControl(1, **kwargs).reset(seed=0)
+
+
+def test_a_route_env_keeps_routes_and_a_shape_env_keeps_shapes():
+    route = BatchedShapeControl(1, target="route", reward="route_gain")
+    with pytest.raises(ValueError, match="a route env's targets stay routes"):
+        route.set_target("diagonal")
+    route.set_target("route:hook_wrap")
+    shape = BatchedShapeControl(1)
+    with pytest.raises(ValueError, match="a shape env's targets stay shapes"):
+        shape.set_target("route")
+
+
+def test_the_native_vector_env_runs_routes_with_pins():
+    venv = gym.make_vec(ROUTING_ENV_ID, num_envs=4, action_type="node_pin")
+    obs, info = venv.reset(seed=0)
+    assert obs["pegs"].shape == (4, 4, 3) and "sides_kept" in info
+    for _ in range(2):
+        obs, reward, terminated, truncated, info = venv.step(venv.action_space.sample())
+    assert reward.shape == (4,) and np.isfinite(reward).all()
+    assert math.isfinite(float(info["shape_error"].max()))
