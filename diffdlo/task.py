@@ -154,10 +154,11 @@ def decode_pixel_node(point: torch.Tensor, pos: torch.Tensor, view_size: float) 
 
 def decode_action(action_type: str, actions: torch.Tensor, pos: torch.Tensor, p: CableParams,
                   view_size: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(B, A) actions clipped to [0, 1] -> grasped node (B,) int64 and drag (B, 2) [m], for either action type."""
+    """(B, A) actions clipped to [0, 1] -> grasped node (B,) int64 and drag (B, 2) [m], for any action type (a
+    "node_pin" action's pin: ``decode_pin`` of its last entry)."""
+    if action_type in ("node", "node_pin"):
+        return decode_node(actions[:, 0], p.n_nodes), decode_drag(actions[:, 1:3], p.action_scale)
     delta = decode_drag(actions[:, -2:], p.action_scale)
-    if action_type == "node":
-        return decode_node(actions[:, 0], p.n_nodes), delta
     return decode_pixel_node(actions[:, :2], pos, view_size), delta
 
 
@@ -173,11 +174,13 @@ def encode_pin(pin: torch.Tensor, n_nodes: int, dtype: torch.dtype = torch.float
     return (pin.to(dtype) + 1) / n_nodes
 
 
-def greedy_drags(pos: torch.Tensor, target: torch.Tensor, max_disp: float) -> tuple[torch.Tensor, torch.Tensor]:
+def greedy_drags(pos: torch.Tensor, target: torch.Tensor, max_disp: float,
+                 align: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """The greedy move's ingredients for rope(s) (..., N, 2): every node's gap to its place in the target moved onto
-    the rope's centroid, capped at ``max_disp`` in length (..., N, 2), and the uncapped gap lengths (..., N). The
-    greedy move drags the node with the largest gap by its capped gap."""
-    aligned = target - target.mean(-2, keepdim=True) + pos.mean(-2, keepdim=True)
+    the rope's centroid (``align``; a route's place on the board without), capped at ``max_disp`` in length
+    (..., N, 2), and the uncapped gap lengths (..., N). The greedy move drags the node with the largest gap by its
+    capped gap."""
+    aligned = target - target.mean(-2, keepdim=True) + pos.mean(-2, keepdim=True) if align else target
     gap = aligned - pos
     dist = gap.norm(dim=-1)
     return gap * (max_disp / dist.clamp_min(1e-12)).clamp(max=1.0).unsqueeze(-1), dist

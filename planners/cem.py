@@ -182,9 +182,10 @@ class CEMPlanner:
     name = "cem"
 
     def __init__(self, sim, horizon: int = 2, candidates: int = 300, elites: int = 30, iterations: int = 5,
-                 running_weight: float = 0.5, seed: int = 0, **cem_kw):
+                 running_weight: float = 0.5, seed: int = 0, pin: int = 0, **cem_kw):
         self.sim, self.p = sim, sim.params
-        self.cem = CEM(3, horizon, candidates, elites, iterations, discrete={0: self.p.n_nodes},
+        self.pin = bool(pin)            # node_pin actions: a fourth entry, the second gripper's node, searched too
+        self.cem = CEM(4 if self.pin else 3, horizon, candidates, elites, iterations, discrete={0: self.p.n_nodes},
                        generator=torch.Generator().manual_seed(seed), **cem_kw)
         self.running_weight = running_weight
         self.sim_evals = 0
@@ -196,9 +197,10 @@ class CEMPlanner:
         if seed is not None:
             self.cem.gen.manual_seed(int(seed))
 
-    def plan(self, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """pos (N, 2), target (N, 2) -> the first action (3,) of the best plan, in [0, 1]."""
-        obj = SimObjective(self.sim, pos, target, running_weight=self.running_weight)
+    def plan(self, pos: torch.Tensor, target: torch.Tensor, pegs: torch.Tensor | None = None) -> torch.Tensor:
+        """pos (N, 2), target (N, 2), a route's pegs (K, 3) -> the first action (3,), or (4,) with the pin, of the
+        best plan, in [0, 1]."""
+        obj = SimObjective(self.sim, pos, target, running_weight=self.running_weight, pegs=pegs)
         best, _ = self.cem.optimize(obj)
         self.sim_evals += obj.sim_evals
         self.cem.shift()
@@ -209,7 +211,8 @@ class CEMPlanner:
                "candidates": (int, 300, "[1, inf)", "sequences per iteration"),
                "elites": (int, 30, "[1, inf)", "elites refit per iteration (at most the candidates)"),
                "iterations": (int, 5, "[1, inf)", "CEM iterations per control step"),
-               "running_weight": (float, 0.5, "[0, inf)", "weight of the intermediate states' error in the cost")}
+               "running_weight": (float, 0.5, "[0, inf)", "weight of the intermediate states' error in the cost"),
+               "pin": (int, 0, "[0, 1]", "1: plan node_pin actions (a second gripper's node, searched too)")}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,7 +28,7 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from diffdlo import task
+from diffdlo import routing, task
 from diffdlo.utils.checks import check_interval
 from diffdlo.envs import BatchedShapeControl, EnvOptions
 from diffdlo.utils.signals import exit_code, stop_on_signals
@@ -77,15 +77,19 @@ def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *
     the target set. Returns (env, planner, target), target None for a family (drawn per episode). Raises ParamsError
     (ropes that disagree on SAME_MOVES), TargetError, or ValueError/RuntimeError (the env's options, the device)."""
     check_same_moves(model, real)
-    task_options = EnvOptions(target="horizontal", max_steps=max_steps, success_tol=success_tol,
-                              success_worst_tol=success_worst_tol, params=real)
+    route = task.is_route(target_spec)
+    task_options = EnvOptions(target="route" if route else "horizontal", max_steps=max_steps, success_tol=success_tol,
+                              success_worst_tol=success_worst_tol, params=real,
+                              reward="route_gain" if route else "position_orientation",
+                              action_type="node_pin" if options.get("pin") else "node")
     env = BatchedShapeControl(1, task_options, device=device)
     target = task.resolve_target(target_spec, model, env.device, env.dtype)
     env.set_target(target)
     sim = env.sim if real == model else Simulator(model, device=env.device, dtype=env.dtype,
                                                   backend=env.sim.backend)
     planner = planner_cls(sim, seed=seed, **options)
-    return env, planner, (None if isinstance(target, str) else target)
+    return env, planner, (None if isinstance(target, str) else
+                          target.route.to(env.device, env.dtype) if route else target)
 
 
 def seen(points: torch.Tensor, perception, rope: bool = True) -> torch.Tensor:
@@ -108,6 +112,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     planner.reset(seed=seed)
     state = env.get_state(generators=False)
     target, target_name = state.target[0], state.target_names[0]
+    pegs = None if state.pegs is None else state.pegs[0][state.pegs[0][:, 2] > 0]       # a route's board
     planned_target = target if perception is None else seen(target, perception, rope=False)
     seen_errors: list[float] = []
     frames = [state.pos[0]]
@@ -124,7 +129,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         if perception is not None:
             rope = seen(rope, perception)
             seen_errors.append(float((rope - frames[-1]).norm(dim=-1).mean()))
-        action = planner.plan(rope, planned_target)
+        action = planner.plan(rope, planned_target) if pegs is None else planner.plan(rope, planned_target, pegs)
         plan_s += time.perf_counter() - t0
         _, _, term, trunc, info = env.step(action.detach().reshape(1, -1).to(torch.float64))
         steps += 1
@@ -146,6 +151,8 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     return {**stats, "success": success, "steps": steps, "final_error": errors[-1], "start_error": errors[0],
             "errors": errors, "worst_errors": worst_errors, "sim_evals": planner.sim_evals - evals0, "plan_s": plan_s,
             "plan_s_per_step": plan_s / max(steps, 1), "seed": seed, "target_name": target_name,
+            **({} if pegs is None else {"pegs": pegs.detach().cpu().to(torch.float64).tolist(),
+                                        "sides_kept": bool(info["sides_kept"][0]) if steps else None}),
             "frames": torch.stack(frames),
             "target_points": target}
 
@@ -155,8 +162,10 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--target", default="diagonal",
                         help=f"one of {list(TARGET_NAMES)}, a family drawn anew per episode {list(TARGET_FAMILIES)} "
-                             f"(episode i's target is the one env.reset(seed=SEED + i) draws), or a path to an (N, 2) "
-                             f".npy/.yaml polyline of the rope's link lengths (default diagonal)")
+                             f"(episode i's target is the one env.reset(seed=SEED + i) draws), a path to an (N, 2) "
+                             f".npy/.yaml polyline of the rope's link lengths, or a route among pegs: 'route' (a "
+                             f"random board per episode) or 'route:NAME' (NAME in {routing.layout_names()} or a "
+                             f"layout .yaml) (default diagonal)")
     parser.add_argument("--seed", type=int, default=0, help="episode i starts from env.reset(seed=SEED + i) (default 0)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes (default 1)")
     parser.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS,
@@ -246,6 +255,8 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     except (ValueError, RuntimeError) as exc:
         parser.error(str(exc))
     perception = None
+    if args.perception is not None and env.route:
+        parser.error("--perception reads ropes without pegs: a route (--target route...) plans from the state")
     if args.perception is not None:
         from diffdlo.perception import Perception, PerceptionError
         try:
@@ -311,10 +322,14 @@ def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor |
         titles += [f"ep {i} (seed {e['seed']}) start: {e['start_error'] * 100:.1f} cm",
                    f"after {e['steps']} moves: {e['final_error'] * 100:.2f} cm"]
     png = out / "shapes.png"
-    render.plot_ropes(torch.stack(ropes), torch.stack(rope_targets), png, titles=titles, cols=2)
+    route = "pegs" in episodes[0]                          # a route: drawn where it lies, among its pegs
+    boards = [torch.tensor(e["pegs"]) for e in episodes for _ in range(2)] if route else None
+    render.plot_ropes(torch.stack(ropes), torch.stack(rope_targets), png, titles=titles, cols=2,
+                      align_target=not route, pegs=boards)
     if not args.no_gif:
         for i, e in enumerate(episodes):
-            render.save_gif(e["frames"], out / f"episode_{i}.gif", targets[i], fps=2, title=f"{name} ep {i}")
+            render.save_gif(e["frames"], out / f"episode_{i}.gif", targets[i], fps=2, title=f"{name} ep {i}",
+                            align_target=not route, pegs=torch.tensor(e["pegs"]) if route else None)
     succ = [e for e in episodes if e["success"]]
     moves = f"{sum(e['steps'] for e in succ) / len(succ):.1f}" if succ else "-"
     print(f"{name} {label}: success {len(succ)}/{n}, moves to success (mean) {moves}, final error mean "

@@ -1,31 +1,40 @@
-"""Greedy baseline: grasp the node farthest from its place in the centroid-aligned target and drag it towards that
-place (at most max_disp = 0.1 m). No simulation: sim_evals = 0.
+"""Greedy baseline: grasp the node farthest from its place in the centroid-aligned target (a route's: on the board)
+and drag it towards that place (at most max_disp = 0.1 m); with ``--pin 1`` a second gripper holds the node, two or
+more links from the grasped one, that is nearest its place. No simulation: sim_evals = 0.
 
     python -m planners.greedy --target diagonal --max-steps 40
+    python -m planners.greedy --target route:u_two_pegs --pin 1 --max-steps 40
 """
 from __future__ import annotations
 
 import torch
 
-from diffdlo.task import encode_node_action, greedy_drags
+from diffdlo.task import encode_node_action, encode_pin, greedy_drags
 
 
 class GreedyPlanner:
     name = "greedy"
 
-    def __init__(self, sim, seed: int = 0):       # deterministic: the seed changes nothing
+    def __init__(self, sim, seed: int = 0, pin: int = 0):       # deterministic: the seed changes nothing
         self.sim, self.p = sim, sim.params
+        self.pin = bool(pin)
         self.sim_evals = 0
 
     def reset(self, seed: int | None = None) -> None:    # deterministic: nothing to re-seed
         pass
 
-    def plan(self, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        drags, dist = greedy_drags(pos, target, self.p.max_disp)
+    def plan(self, pos: torch.Tensor, target: torch.Tensor, pegs: torch.Tensor | None = None) -> torch.Tensor:
+        drags, dist = greedy_drags(pos, target, self.p.max_disp, align=pegs is None)
         node = dist.argmax()
-        return encode_node_action(node, drags[node], self.p.n_nodes, self.p.action_scale)
+        action = encode_node_action(node, drags[node], self.p.n_nodes, self.p.action_scale)
+        if not self.pin:
+            return action
+        far = (torch.arange(self.p.n_nodes) - node).abs() >= 2
+        held = torch.where(far, dist, torch.full_like(dist, float("inf"))).argmin()
+        return torch.cat([action, encode_pin(held, self.p.n_nodes, action.dtype)[None]])
 
-    OPTIONS: dict = {}            # nothing to set on the command line
+    # the command line's options (planners/common.py): constructor argument -> (type, default, allowed, help)
+    OPTIONS = {"pin": (int, 0, "[0, 1]", "1: a second gripper holds the best-placed node (node_pin actions)")}
 
 
 def main(argv: list[str] | None = None) -> int:

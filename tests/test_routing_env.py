@@ -79,8 +79,10 @@ def test_a_pin_action_holds_its_node():
     assert task.decode_pin(a[:, 3], torch.tensor([0, 0]), n).tolist() == [-1, 3]
     assert task.decode_pin(torch.tensor([float(task.encode_pin(torch.tensor(0), n))]), torch.tensor([0]), n).item() == -1
     core.step(a)
-    moved = (core.get_state().pos - start).norm(dim=-1)
+    shift = core.get_state().pos - start
+    moved = shift.norm(dim=-1)
     assert float(moved[0, 3]) > 1e-3 and float(moved[1, 3]) < float(moved[0, 3])
+    assert (shift[:, 0, 0] > 0.05).all() and (shift[:, 0, 1].abs() < 0.03).all()    # node 0 dragged by (0.1, 0)
 
 
 @pytest.mark.parametrize("kwargs, error, match", [

@@ -1,0 +1,103 @@
+"""The planners on routes among pegs (issue 59): the objective rolls out with the pegs and the pin and scores on the
+board with the side cost, matching the env; each planner plans with and without the pin; the CLI records the board."""
+import json
+
+import torch
+
+from diffdlo import routing, task
+from diffdlo.envs import BatchedShapeControl
+from planners import SimObjective
+from planners import greedy as greedy_mod
+from planners.cem import CEMPlanner
+from planners.common import build_run, run_episode
+from planners.gradient import GradientPlanner
+from planners.greedy import GreedyPlanner
+from planners.objective import SIDE_COST, route_cost
+
+
+def route_env(b=3, action_type="node_pin"):
+    env = BatchedShapeControl(b, target="route:u_two_pegs", reward="route_gain", action_type=action_type)
+    env.reset(seed=0)
+    return env
+
+
+def test_the_objective_matches_the_env_on_a_route_with_pins():
+    env = route_env()
+    state = env.get_state()
+    start, route, pegs = state.pos[0].clone(), state.target[0].clone(), state.pegs[0].clone()
+    actions = torch.rand(3, 2, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    actions[1, :, 3] = 0.0                                           # rope 1: no pin
+    obj = SimObjective(env.sim, start, route, pegs=routing.simulator_pegs(pegs[None])[0])
+    node, delta = task.decode_node_action(actions[..., :3].float(), env.params)
+    pin = task.decode_pin(actions[..., 3].float(), node, env.params.n_nodes)
+    cost, states = obj.rollout_deltas(node, delta, return_states=True, pin=pin)
+    torch.testing.assert_close(obj(actions), cost, rtol=0, atol=0)
+    env.set_state(pos=start.expand(3, -1, -1), steps=0)
+    for t in range(2):
+        env.step(actions[:, t])
+    torch.testing.assert_close(states[:, -1], env.get_state().pos, rtol=0, atol=1e-6)
+    info = env.info()
+    real = pegs[pegs[:, 2] > 0]
+    extra = (route_cost(env.get_state().pos.double(), route.double(), real.double())
+             - info["shape_error"].double()) / SIDE_COST                     # the pegs passed on the wrong side
+    torch.testing.assert_close(extra, extra.round(), rtol=0, atol=1e-4)
+    assert ((extra.round() == 0) == info["sides_kept"]).all()
+
+
+def test_the_side_cost_charges_each_peg_on_the_wrong_side():
+    env = route_env(1)
+    layout = routing.load_layout("u_two_pegs", env.params)
+    route = layout.route
+    shifted = route + torch.tensor([0.0, 0.3], dtype=route.dtype)            # both pegs now below the rope...
+    on = float(route_cost(route[None], route, layout.pegs)[0])
+    off = float(route_cost(shifted[None], route, layout.pegs)[0])
+    assert on < 1e-12
+    assert abs(off - (0.3 + SIDE_COST * 2)) < 1e-9                           # ...both on the wrong side
+
+
+def test_every_planner_plans_routes_with_and_without_the_pin():
+    env = route_env(1)
+    state = env.get_state()
+    pos, route, pegs = state.pos[0], state.target[0], state.pegs[0][state.pegs[0][:, 2] > 0]
+    n = env.params.n_nodes
+    for pin in (0, 1):
+        planners = [GreedyPlanner(env.sim, pin=pin),
+                    CEMPlanner(env.sim, horizon=1, candidates=20, elites=4, iterations=2, pin=pin),
+                    GradientPlanner(env.sim, iters=2, restarts=1, halvings=1, pin=pin)]
+        for planner in planners:
+            action = planner.plan(pos, route, routing.simulator_pegs(pegs[None])[0])
+            assert action.shape == (4 if pin else 3,), (planner.name, action.shape)
+            assert bool(((action >= 0) & (action <= 1)).all())
+            if pin and planner.name == "greedy":
+                node, _ = task.decode_node_action(action[:3], env.params)
+                held = task.decode_pin(action[3:], node[None], n)
+                assert int(held) >= 0 and abs(int(held) - int(node)) >= 2
+    grad = GradientPlanner(env.sim, pin=1)
+    options = grad.pin_candidates(pos, pegs).tolist()
+    nearest = (pos[None] - pegs[:, None, :2]).norm(dim=-1).argmin(-1).tolist()
+    assert options[0] == -1 and {0, n - 1} <= set(options) and set(nearest) <= set(options)
+
+
+def test_greedy_drags_a_route_towards_its_place_on_the_board():
+    env = route_env(1, "node")
+    state = env.get_state()
+    pos, route = state.pos[0], state.target[0]
+    action = GreedyPlanner(env.sim).plan(pos, route, state.pegs[0][:2])
+    node, drag = task.decode_node_action(action, env.params)
+    gap = route[node] - pos[node]                                      # on the board, not centroid-aligned
+    cos = float(drag @ gap / (drag.norm() * gap.norm()))
+    assert cos > 0.99
+
+
+def test_a_route_episode_records_its_board_and_sides(tmp_path, capsys):
+    p = route_env(1).params
+    env, planner, target = build_run(GreedyPlanner, p, p, "route:u_two_pegs", max_steps=2, success_tol=None,
+                                     device="cpu", seed=0, options={"pin": 1})
+    assert env.action_type == "node_pin" and env.route and target.shape == (p.n_nodes, 2)
+    ep = run_episode(env, planner, seed=0, progress=False)
+    assert len(ep["pegs"]) == 2 and isinstance(ep["sides_kept"], bool) and ep["steps"] == 2
+    out = tmp_path / "greedy"
+    assert greedy_mod.main(["--target", "route:u_two_pegs", "--pin", "1", "--max-steps", "2", "--out", str(out),
+                            "--quiet", "--no-gif"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["episodes"][0]["pegs"] == ep["pegs"] and (out / "shapes.png").is_file()
