@@ -196,15 +196,16 @@ def random_layout(p: CableParams, generator: torch.Generator, pegs: tuple[int, i
     raise LayoutError(f"no layout with {pegs} pegs found in {tries} tries (max_turn_deg={max_turn_deg})")
 
 
-def start_beside(layout: Layout, p: CableParams, generator: torch.Generator, spread: float = 0.15,
+def start_beside(layout: Layout, p: CableParams, generator: torch.Generator, distance: float = 0.2,
                  tries: int = 200) -> torch.Tensor:
-    """(N, 2) a start shape off the route: a random rope (the thesis's sigma) centred ``spread`` [m] or less from
-    the route's centre, its axis clear of every peg by the rope's radius and off the route (its mean node error
+    """(N, 2) a start shape beside the board: a random rope (the thesis's sigma) centred ``distance`` [m] from the
+    route's centre in a random direction, clear of every peg by PEG_CLEARANCE and off the route (its mean node error
     above 5 cm). Drawn from ``generator``."""
     pegs = layout.pegs.to(torch.float64)
     for _ in range(tries):
         shape = random_shape(1, p, generator, dtype=torch.float64)[0]
-        offset = spread * (2 * torch.rand(2, generator=generator, dtype=torch.float64) - 1)
+        angle = 2 * math.pi * float(torch.rand(1, generator=generator, dtype=torch.float64))
+        offset = distance * torch.tensor([math.cos(angle), math.sin(angle)], dtype=torch.float64)
         shape = shape + layout.route.mean(0) + offset
         if float(contact.depth(shape[None], pegs[None], p.rope_radius)) > -PEG_CLEARANCE:
             continue
