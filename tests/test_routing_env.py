@@ -69,20 +69,22 @@ def test_the_pictures_draw_the_pegs():
     assert int(near) >= 4
 
 
-def test_a_pin_action_holds_its_node():
+def test_a_pin_action_moves_the_rope_as_the_simulator_with_that_pin():
     core = BatchedShapeControl(2, target="route:u_two_pegs", reward="route_gain", action_type="node_pin")
     core.reset(seed=0)
-    start = core.get_state().pos.clone()
+    state = core.get_state()
     n = core.params.n_nodes
     a = torch.tensor([[0.0, 1.0, 0.5, 0.0], [0.0, 1.0, 0.5, 0.0]])
     a[1, 3] = float(task.encode_pin(torch.tensor(3), n))                   # rope 1: node 3 pinned, rope 0: none
     assert task.decode_pin(a[:, 3], torch.tensor([0, 0]), n).tolist() == [-1, 3]
     assert task.decode_pin(torch.tensor([float(task.encode_pin(torch.tensor(0), n))]), torch.tensor([0]), n).item() == -1
     core.step(a)
-    shift = core.get_state().pos - start
-    moved = shift.norm(dim=-1)
-    assert float(moved[0, 3]) > 1e-3 and float(moved[1, 3]) < float(moved[0, 3])
-    assert (shift[:, 0, 0] > 0.05).all() and (shift[:, 0, 1].abs() < 0.03).all()    # node 0 dragged by (0.1, 0)
+    node, drag = torch.tensor([0, 0]), torch.tensor([[0.1, 0.0], [0.1, 0.0]])          # node 0 by (0.1, 0)
+    pegs = routing.simulator_pegs(state.pegs)
+    pinned = core.sim.move(state.pos, node, drag, pegs, torch.tensor([-1, 3]))
+    torch.testing.assert_close(core.get_state().pos, pinned, rtol=0, atol=1e-6)
+    free = core.sim.move(state.pos, node, drag, pegs)
+    assert float((pinned[1] - free[1]).abs().max()) > 1e-3 and torch.equal(pinned[0], free[0])
 
 
 @pytest.mark.parametrize("kwargs, error, match", [
