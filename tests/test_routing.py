@@ -122,3 +122,9 @@ def test_a_start_beside_the_board_is_clear_of_the_pegs_and_off_the_route(p):
         assert float(routing.route_errors(start[None], layout.route).mean()) > 0.05
         diffdlo.Simulator(p, dtype=F64).move(start[None], torch.tensor([0]), torch.zeros(1, 2, dtype=F64),
                                              layout.pegs)           # an admissible start
+
+
+def test_the_layout_maker_draws_and_refuses_to_overwrite(tmp_path, capsys):
+    figure = tmp_path / "layouts.png"
+    assert make_layouts.main(["--figure", str(figure)]) == 0 and figure.stat().st_size > 10_000
+    assert make_layouts.main(["--figure", str(figure)]) == 2 and "--overwrite" in capsys.readouterr().err

@@ -1,6 +1,8 @@
-"""Writes the fixed routing layouts (diffdlo/layouts/*.yaml) for the 20-node, 0.5 m rope of params/cable.yaml:
+"""Writes the fixed routing layouts (diffdlo/layouts/*.yaml) for the 20-node, 0.5 m rope of params/cable.yaml, or
+draws them (each with the start of episode 0 beside it, and four random boards of target "route"):
 
     python -m diffdlo.layouts.make_layouts
+    python -m diffdlo.layouts.make_layouts --figure docs/figures/layouts.png
 
 Each route is a polyline of the rope's links built from its turning angles (degrees per interior node, node 1 to
 N - 2), centred on the board; each peg sits against the inside (the route wraps it) or the outside (the route
@@ -9,14 +11,16 @@ held-out ones (diffdlo.routing.HELD_OUT_LAYOUTS), which no learner may see in tr
 """
 from __future__ import annotations
 
+import argparse
 import math
+import sys
 from pathlib import Path
 
 import torch
 import yaml
 
 from diffdlo.params import load_params
-from diffdlo.routing import Layout, peg_against
+from diffdlo.routing import HELD_OUT_LAYOUTS, Layout, peg_against, random_layout, start_beside
 from diffdlo.shapes import polyline_from_angles
 
 HERE = Path(__file__).resolve().parent
@@ -46,7 +50,33 @@ def build(name: str) -> Layout:
     return layout.check(p)
 
 
-def main() -> None:
+def figure(path: Path) -> Path:
+    """The fixed layouts and four random boards, each route dashed among its pegs with a start beside it."""
+    from diffdlo import render
+    p = load_params("cable")
+    layouts = [build(name) for name in LAYOUTS]
+    gen = torch.Generator().manual_seed(0)
+    layouts += [random_layout(p, gen) for _ in range(4)]
+    starts = [start_beside(layout, p, torch.Generator().manual_seed(i)) for i, layout in enumerate(layouts)]
+    titles = [f"{'held out: ' if layout.name in HELD_OUT_LAYOUTS else ''}{layout.name} ({len(layout.pegs)} pegs)"
+              for layout in layouts]
+    render.plot_ropes(torch.stack(starts), torch.stack([layout.route for layout in layouts]), path, titles=titles,
+                      align_target=False, pegs=[layout.pegs for layout in layouts], cols=4)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m diffdlo.layouts.make_layouts", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--figure", type=Path, help="draw the layouts to this PNG instead of writing them")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --figure")
+    args = parser.parse_args(argv)
+    if args.figure is not None:
+        if args.figure.exists() and not args.overwrite:
+            print(f"{args.figure} exists; pass --overwrite to replace it", file=sys.stderr)
+            return 2
+        print(f"wrote {figure(args.figure)}")
+        return 0
     for name in LAYOUTS:
         layout = build(name)
         text = (f"# routing layout {name!r} for the 20-node, 0.5 m rope (python -m diffdlo.layouts.make_layouts)\n"
@@ -56,7 +86,8 @@ def main() -> None:
         (HERE / f"{name}.yaml").write_text(text)
         turns = ", ".join(f"{t / math.pi:+.2f} pi" for t in layout.turns().tolist())
         print(f"{name}: {len(layout.pegs)} pegs, the route turns {turns} round them")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
