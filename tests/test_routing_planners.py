@@ -101,3 +101,22 @@ def test_a_route_episode_records_its_board_and_sides(tmp_path, capsys):
                             "--quiet", "--no-gif"]) == 0
     results = json.loads((out / "results.json").read_text())
     assert results["episodes"][0]["pegs"] == ep["pegs"] and (out / "shapes.png").is_file()
+
+
+def test_the_routing_study_runs_missing_cells_reads_done_ones_and_records(tmp_path, capsys):
+    from benchmarks.studies import routing_planners as study
+    record = tmp_path / "routing.json"
+    argv = ["--out", str(tmp_path / "runs"), "--planners", "greedy", "--targets", "route:u_two_pegs",
+            "--episodes", "2", "--max-steps", "1"]
+    assert study.main(argv + ["--record", str(record)]) == 0
+    table = json.loads(record.read_text())["cells"]
+    assert set(table) == {"greedy route:u_two_pegs pin0", "greedy route:u_two_pegs pin1"}
+    assert table["greedy route:u_two_pegs pin1"]["pin_effect"]["pairs"] == 0      # one move solves nothing
+    assert "| greedy | route:u_two_pegs | 1 | 0/2 |" in capsys.readouterr().out
+    stamp = (tmp_path / "runs" / "greedy-u_two_pegs-pin0" / "results.json").stat().st_mtime_ns
+    assert study.main(argv) == 0                                                  # done cells are read, not re-run
+    assert (tmp_path / "runs" / "greedy-u_two_pegs-pin0" / "results.json").stat().st_mtime_ns == stamp
+    assert study.main(argv + ["--record", str(record)]) == 2                      # never replaced without asking
+    paired = study.paired_pin({"steps": [3, 5, 4], "solved": [True, True, False], "success": 2},
+                              {"steps": [2, 6, 1], "solved": [True, True, True], "success": 3})
+    assert paired == {"pairs": 2, "moves_delta": 0.0, "moves_delta_se": 1.0, "success_delta": 1}
