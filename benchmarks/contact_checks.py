@@ -30,6 +30,7 @@ from diffdlo import contact
 from diffdlo.params import CableParams, load_params
 from diffdlo.shapes import target_shape
 from diffdlo.simulator import Simulator
+from diffdlo.utils.files import check_fresh_file
 
 F64 = torch.float64
 
@@ -400,15 +401,16 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.scenes < 1:
         ap.error(f"--scenes must be >= 1, got {args.scenes}")
+    written = args.figure if args.figure is not None else None if args.out is None else args.out / "results.json"
+    try:
+        if written is not None:
+            check_fresh_file(written, args.overwrite)
+    except FileExistsError as exc:
+        print(exc, file=sys.stderr)
+        return 2
     if args.figure is not None:
-        if args.figure.exists() and not args.overwrite:
-            print(f"{args.figure} exists; pass --overwrite to replace it", file=sys.stderr)
-            return 2
         print(f"wrote {wrap_figure(args.figure)}")
         return 0
-    if args.out is not None and (args.out / "results.json").exists() and not args.overwrite:
-        print(f"{args.out / 'results.json'} exists; pass --overwrite to replace it", file=sys.stderr)
-        return 2
     res = run_all(scenes=args.scenes)
     print("\n".join(rows(res)))
     print(f"\n({res['seconds']:.0f} s)")

@@ -18,6 +18,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from diffdlo.utils.files import check_fresh_file
+
 PLANNERS = ("greedy", "cem", "gradient")
 TARGETS = ("route", "route:hook_wrap", "route:zigzag_four")
 
@@ -70,8 +72,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.episodes < 1 or args.max_steps < 1:
         ap.error(f"--episodes and --max-steps must be >= 1, got {args.episodes} and {args.max_steps}")
-    if args.record is not None and args.record.exists() and not args.overwrite:
-        print(f"{args.record} exists; pass --overwrite to replace it", file=sys.stderr)
+    try:
+        if args.record is not None:
+            check_fresh_file(args.record, args.overwrite)
+    except FileExistsError as exc:
+        print(exc, file=sys.stderr)
         return 2
     table: dict[str, dict] = {}
     for target in args.targets:

@@ -22,6 +22,7 @@ import yaml
 from diffdlo.params import load_params
 from diffdlo.routing import HELD_OUT_LAYOUTS, Layout, peg_against, random_layout, start_beside
 from diffdlo.shapes import polyline_from_angles
+from diffdlo.utils.files import check_fresh_file
 
 HERE = Path(__file__).resolve().parent
 
@@ -72,8 +73,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --figure")
     args = parser.parse_args(argv)
     if args.figure is not None:
-        if args.figure.exists() and not args.overwrite:
-            print(f"{args.figure} exists; pass --overwrite to replace it", file=sys.stderr)
+        try:
+            check_fresh_file(args.figure, args.overwrite)
+        except FileExistsError as exc:
+            print(exc, file=sys.stderr)
             return 2
         print(f"wrote {figure(args.figure)}")
         return 0

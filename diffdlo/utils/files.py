@@ -76,6 +76,12 @@ def check_fresh_out(out: Path | str, overwrite: bool, what: str = "a run", flag:
                               f"with --resume where the command has one, or pass {flag} to replace it")
 
 
+def check_fresh_file(path: Path | str, overwrite: bool) -> None:
+    """Refuse to replace a file a user has (a figure, a record) unless ``overwrite``: FileExistsError naming it."""
+    if not overwrite and Path(path).exists():
+        raise FileExistsError(f"{path} exists; pass --overwrite to replace it")
+
+
 # ====================================================================== one writer per folder
 def pid_alive(pid: int) -> bool:
     try:
