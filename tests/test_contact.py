@@ -323,3 +323,15 @@ def test_the_checks_command_refuses_bad_flags_and_an_existing_file(tmp_path, cap
     with pytest.raises(SystemExit):
         contact_checks.main(["--scenes", "0"])
     assert "--scenes must be >= 1, got 0" in capsys.readouterr().err
+
+
+def test_the_kernels_start_check_equals_the_torch_overlap(params):
+    from diffdlo.backends import kernel
+    if not kernel.available():
+        pytest.skip(f"no C++ kernel: {kernel.unavailable_reason()}")
+    pos, pegs = contact_states(params)
+    for dtype in (torch.float64, torch.float32):
+        fast = kernel.deepest_overlap(pos.to(dtype), pegs.to(dtype), params.rope_radius)
+        torch.testing.assert_close(fast, contact.depth(pos.to(dtype), pegs.to(dtype), params.rope_radius),
+                                   rtol=0, atol=1e-12 if dtype == torch.float64 else 1e-6)
+    assert float(fast.max()) > 0

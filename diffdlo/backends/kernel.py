@@ -105,6 +105,8 @@ def _build() -> ctypes.CDLL:
         getattr(lib, f"diffdlo_forward_{suffix}").argtypes = [ptr] * 10 + [i64] + [ptr] * 7
         getattr(lib, f"diffdlo_backward_{suffix}").argtypes = [ptr] * 10 + [i64] + [ptr] * 8
         getattr(lib, f"diffdlo_hvp_{suffix}").argtypes = [ptr, i64, ptr, ptr, ptr, ptr, i64, i64]
+        getattr(lib, f"diffdlo_overlap_{suffix}").argtypes = [i64, i64, ptr, ptr, i64, ctypes.c_double, ptr]
+        getattr(lib, f"diffdlo_overlap_{suffix}").restype = None
         for name in ("forward", "backward", "hvp"):
             getattr(lib, f"diffdlo_{name}_{suffix}").restype = None
     return lib
@@ -242,6 +244,17 @@ def backward(setup: Setup, pos, vel, node, delta, speed, n_grasp, grad_pos_out, 
         _ptr(n_grasp), _ptr(phys), _ptr(pegs), n_pegs, _ptr(pin), _ptr(grad_pos_out), _ptr(grad_vel_out),
         _ptr(grad_frames), _ptr(grad_pos), _ptr(grad_vel), _ptr(grad_delta), _ptr(grad_phys))
     return grad_pos, grad_vel, grad_delta, None if grad_phys is None else grad_phys.to(torch.float64)
+
+
+def deepest_overlap(pos: torch.Tensor, pegs: torch.Tensor, rope_radius: float) -> torch.Tensor:
+    """(B,) the deepest overlap [m] of each rope's (B, N, 2) links with its pegs (B, K, 3), as
+    diffdlo.contact.depth computes it (CPU tensors of one dtype)."""
+    lib = _load()
+    pos, pegs = _contig(pos, pegs.to(pos.dtype))
+    out = pos.new_empty(pos.shape[0])
+    getattr(lib, f"diffdlo_overlap_{_suffix(pos.dtype)}")(pos.shape[0], pos.shape[1], _ptr(pos), _ptr(pegs),
+                                                           pegs.shape[1], float(rope_radius), _ptr(out))
+    return out
 
 
 def hvp(p, pos: torch.Tensor, u: torch.Tensor, pegs: torch.Tensor | None = None, lift: int = -1) -> torch.Tensor:

@@ -23,6 +23,7 @@
 // exactly the code without them.
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <cstdint>
 #include <memory>
 #include <vector>
@@ -1503,6 +1504,26 @@ void backward(const double* fp, const int64_t* ip, const T* pos, const T* vel, c
   });
 }
 
+// The deepest overlap of each rope's links with its pegs (the Simulator's check of a start state, without torch's
+// per-op overhead): out[b] = max over links k and pegs j of R_j + rr - |q - c_j| (peg_closest), pegs per rope.
+template <typename T>
+void deepest_overlap(int64_t B, int64_t n, const T* pos, const T* pegs, int64_t K, T rr, T* out) {
+  for (int64_t b = 0; b < B; ++b) {
+    const T* x = pos + 2 * n * b;
+    const T* pg = pegs + 3 * K * b;
+    T deepest = -std::numeric_limits<T>::infinity();
+    for (int64_t k = 0; k + 1 < n; ++k) {
+      const T ax = x[2 * k], ay = x[2 * k + 1], ex = x[2 * k + 2] - ax, ey = x[2 * k + 3] - ay;
+      for (int64_t j = 0; j < K; ++j) {
+        T sv, t, rx, ry, d, z;
+        peg_closest(ax, ay, ex, ey, pg[3 * j], pg[3 * j + 1], pg[3 * j + 2] + rr, sv, t, rx, ry, d, z);
+        deepest = std::max(deepest, z);
+      }
+    }
+    out[b] = deepest;
+  }
+}
+
 }  // namespace
 
 extern "C" {
@@ -1523,6 +1544,11 @@ int64_t diffdlo_lanes() { return W; }
                                  T* gdelta, T* gphys) {                                                            \
     backward<T>(fp, ip, pos, vel, node, delta, speed, n_grasp, phys, pegs, n_pegs, pin, gpos_out, gvel_out,        \
                 gframes, gpos, gvel, gdelta, gphys);                                                               \
+  }                                                                                                                \
+  /* the deepest overlap z = R + rr - d of any link of each rope (B x n x 2) with its n_pegs pegs, into out[B] */ \
+  void diffdlo_overlap_##SUFFIX(int64_t B, int64_t n, const T* pos, const T* pegs, int64_t n_pegs, double rr,       \
+                                T* out) {                                                                          \
+    deepest_overlap<T>(B, n, pos, pegs, n_pegs, T(rr), out);                                                       \
   }                                                                                                                \
   /* H u of the energy of one rope (n x 2) at x, with n_pegs pegs (x, y, R) and the links at node lift lifted */  \
   void diffdlo_hvp_##SUFFIX(const double* fp, int64_t n, const T* x, const T* u, T* out, const T* pegs,            \
