@@ -40,8 +40,8 @@ POINT_OBS = ("points", "perceived")
 COORDINATE_OBS = ("points", "distance", "perceived")
 PICTURE_OBS = ("image", "image_single")
 DRAWN_OBS = PICTURE_OBS + ("perceived",)
-ACTION_TYPES = ("node", "pixel", "node_pin")
-ACTION_DIMS = {"node": 3, "pixel": 4, "node_pin": 4}
+ACTION_TYPES = ("node", "pixel", "node_pin", "pixel_pin")
+ACTION_DIMS = {"node": 3, "pixel": 4, "node_pin": 4, "pixel_pin": 6}
 ROUTE = "route"                # the routing family: a random layout of pegs and a route per episode
 ROUTE_PREFIX = "route:"        # a fixed layout: "route:NAME" (diffdlo/layouts) or "route:PATH.yaml"
 ROUTE_OBS = ("points", "image", "image_single")       # the observations that carry the pegs
@@ -154,12 +154,24 @@ def decode_pixel_node(point: torch.Tensor, pos: torch.Tensor, view_size: float) 
 
 def decode_action(action_type: str, actions: torch.Tensor, pos: torch.Tensor, p: CableParams,
                   view_size: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(B, A) actions clipped to [0, 1] -> grasped node (B,) int64 and drag (B, 2) [m], for any action type (a
-    "node_pin" action's pin: ``decode_pin`` of its last entry)."""
+    """(B, A) actions clipped to [0, 1] -> grasped node (B,) int64 and drag (B, 2) [m], for any action type (the
+    pin of the pin actions: ``decode_action_pin``)."""
     if action_type in ("node", "node_pin"):
         return decode_node(actions[:, 0], p.n_nodes), decode_drag(actions[:, 1:3], p.action_scale)
-    delta = decode_drag(actions[:, -2:], p.action_scale)
-    return decode_pixel_node(actions[:, :2], pos, view_size), delta
+    return decode_pixel_node(actions[:, :2], pos, view_size), decode_drag(actions[:, 2:4], p.action_scale)
+
+
+def decode_action_pin(action_type: str, actions: torch.Tensor, node: torch.Tensor, pos: torch.Tensor,
+                      p: CableParams, view_size: float) -> torch.Tensor | None:
+    """The second gripper's node (B,) int64 (-1: none) of (B, A) clipped actions, None for an action type without
+    one: "node_pin" ``decode_pin`` of entry 3; "pixel_pin" the node nearest the point (entries 4, 5: column, row
+    fractions of the view, as eq 2.5's grasp), none where that is the grasped node."""
+    if action_type == "node_pin":
+        return decode_pin(actions[:, 3], node, p.n_nodes)
+    if action_type == "pixel_pin":
+        pin = decode_pixel_node(actions[:, 4:6], pos, view_size)
+        return torch.where(pin == node, torch.full_like(pin, -1), pin)
+    return None
 
 
 def decode_pin(a: torch.Tensor, node: torch.Tensor, n_nodes: int) -> torch.Tensor:

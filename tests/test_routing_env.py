@@ -120,3 +120,25 @@ def test_the_native_vector_env_runs_routes_with_pins():
         obs, reward, terminated, truncated, info = venv.step(venv.action_space.sample())
     assert reward.shape == (4,) and np.isfinite(reward).all()
     assert math.isfinite(float(info["shape_error"].max()))
+
+
+def test_a_pixel_pin_action_holds_the_node_nearest_its_point():
+    core = BatchedShapeControl(2, target="route:u_two_pegs", reward="route_gain", action_type="pixel_pin",
+                               obs_type="image")
+    check_env(gym.make(ROUTING_ENV_ID, action_type="pixel_pin", obs_type="image").unwrapped, skip_render_check=True)
+    core.reset(seed=0)
+    state = core.get_state()
+    half = core.view_size / 2
+
+    def point(xy):                               # world [m] -> (column, row) fractions of the view
+        return [(xy[0] + half) / core.view_size, (half - xy[1]) / core.view_size]
+
+    a = torch.tensor([point(state.pos[0, 19].tolist()) + [0.5, 1.0] + point(state.pos[0, 10].tolist()),
+                      point(state.pos[1, 19].tolist()) + [0.5, 1.0] + point(state.pos[1, 19].tolist())])
+    node, drag = task.decode_action("pixel_pin", a, state.pos, core.params, core.view_size)
+    pin = task.decode_action_pin("pixel_pin", a, node, state.pos, core.params, core.view_size)
+    assert node.tolist() == [19, 19] and pin.tolist() == [10, -1]            # on the grasped node: no pin
+    torch.testing.assert_close(drag, torch.tensor([[0.0, 0.1], [0.0, 0.1]]))
+    core.step(a)
+    expect = core.sim.move(state.pos, node, drag, routing.simulator_pegs(state.pegs), pin)
+    torch.testing.assert_close(core.get_state().pos, expect, rtol=0, atol=1e-6)

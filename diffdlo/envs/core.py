@@ -297,7 +297,8 @@ class BatchedShapeControl:
         if idx:
             s, ids = self._state, torch.tensor(idx, device=self.device)
             node, delta = self.decode(a)
-            pin = task.decode_pin(a[:, 3], node, self.params.n_nodes)[ids] if self.action_type == "node_pin" else None
+            pin = task.decode_action_pin(self.action_type, a, node, self._state.pos, self.params, self.view_size)
+            pin = None if pin is None else pin[ids]
             prev, target = s.pos[ids], s.target[ids]
             pegs = None if s.pegs is None else s.pegs[ids]
             new, move_info = self.sim.move(prev, node[ids], delta[ids], None if pegs is None else

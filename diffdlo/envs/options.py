@@ -88,8 +88,9 @@ class EnvOptions:
         '"pixel" (eq 2.5, [0, 1]^4: (a0, a1) = (column, row) fractions of the image view window, row 0 at the top; '
         'the node nearest to that point is grasped; dx, dy as for "node") or "node_pin" (ours, [0, 1]^4: "node"\'s '
         "three, then a second gripper's node held still during the drag, round(a3 N) - 1: -1 (a3 < 1/(2N)) or the "
-        "grasped node is no pin; diffdlo.task.decode_pin). Actions outside [0, 1] are clipped to [0, 1]; NaN/inf or "
-        "a wrong shape raise ValueError"))
+        'grasped node is no pin; diffdlo.task.decode_pin) or "pixel_pin" (ours, [0, 1]^6: "pixel"\'s four, then the '
+        "second gripper's point (column, row): the node nearest it is held, none where that is the grasped node). "
+        "Actions outside [0, 1] are clipped to [0, 1]; NaN/inf or a wrong shape raise ValueError"))
     reward: str = option("position_orientation", choices=REWARDS, help=(
         'one of diffdlo.REWARDS ("position_orientation" eq 2.9-2.11, "abs_diff" eq 2.7, "delta_gain" eq 2.8, '
         '"shape_gain": ours, the centimetres of shape error a move removed)'))
