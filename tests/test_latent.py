@@ -340,7 +340,8 @@ def test_bad_latent_settings_are_named_in_one_line_and_nothing_is_written(settin
 
 
 def snapshot(folder):
-    return {f.name: f.read_bytes() for f in sorted(folder.iterdir())}
+    """Every file under ``folder`` (a TensorBoard log folder too, where tensorboard is installed) by its path."""
+    return {str(f.relative_to(folder)): f.read_bytes() for f in sorted(folder.rglob("*")) if f.is_file()}
 
 
 @pytest.fixture(scope="module")
