@@ -196,16 +196,31 @@ def random_layout(p: CableParams, generator: torch.Generator, pegs: tuple[int, i
     raise LayoutError(f"no layout with {pegs} pegs found in {tries} tries (max_turn_deg={max_turn_deg})")
 
 
+ROUTE_STARTS = ("beside", "across")
+
+
 def start_beside(layout: Layout, p: CableParams, generator: torch.Generator, distance: float = 0.2,
                  tries: int = 200) -> torch.Tensor:
     """(N, 2) a start shape beside the board: a random rope (the thesis's sigma) centred ``distance`` [m] from the
     route's centre in a random direction, clear of every peg by PEG_CLEARANCE and off the route (its mean node error
     above 5 cm). Drawn from ``generator``."""
+    return _start(layout, p, generator, lambda: distance, tries)
+
+
+def start_across(layout: Layout, p: CableParams, generator: torch.Generator, spread: float = 0.05,
+                 tries: int = 200) -> torch.Tensor:
+    """(N, 2) a start shape across the board: as ``start_beside`` but centred at most ``spread`` [m] from the route's
+    centre, so the rope lies among the pegs, often on their wrong sides (a harder start: see docs/ROUTING.md)."""
+    return _start(layout, p, generator, lambda: spread * float(torch.rand(1, generator=generator,
+                                                                          dtype=torch.float64)), tries)
+
+
+def _start(layout: Layout, p: CableParams, generator: torch.Generator, distance, tries: int) -> torch.Tensor:
     pegs = layout.pegs.to(torch.float64)
     for _ in range(tries):
         shape = random_shape(1, p, generator, dtype=torch.float64)[0]
         angle = 2 * math.pi * float(torch.rand(1, generator=generator, dtype=torch.float64))
-        offset = distance * torch.tensor([math.cos(angle), math.sin(angle)], dtype=torch.float64)
+        offset = distance() * torch.tensor([math.cos(angle), math.sin(angle)], dtype=torch.float64)
         shape = shape + layout.route.mean(0) + offset
         if float(contact.depth(shape[None], pegs[None], p.rope_radius)) > -PEG_CLEARANCE:
             continue

@@ -72,7 +72,7 @@ def check_same_moves(model: CableParams, real: CableParams) -> None:
 
 def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *, max_steps: int,
               success_tol: float | None, device: str, seed: int, options: dict[str, Any],
-              success_worst_tol: float | None = None):
+              success_worst_tol: float | None = None, route_start: str = "beside"):
     """The env (moving and scoring the ``real`` rope) and the planner (planning on a Simulator of ``model``), with
     the target set. Returns (env, planner, target), target None for a family (drawn per episode). Raises ParamsError
     (ropes that disagree on SAME_MOVES), TargetError, or ValueError/RuntimeError (the env's options, the device)."""
@@ -81,7 +81,7 @@ def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *
     task_options = EnvOptions(target="route" if route else "horizontal", max_steps=max_steps, success_tol=success_tol,
                               success_worst_tol=success_worst_tol, params=real,
                               reward="route_gain" if route else "position_orientation",
-                              action_type="node_pin" if options.get("pin") else "node")
+                              action_type="node_pin" if options.get("pin") else "node", route_start=route_start)
     env = BatchedShapeControl(1, task_options, device=device)
     target = task.resolve_target(target_spec, model, env.device, env.dtype)
     env.set_target(target)
@@ -166,6 +166,8 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
                              f".npy/.yaml polyline of the rope's link lengths, or a route among pegs: 'route' (a "
                              f"random board per episode) or 'route:NAME' (NAME in {routing.layout_names()} or a "
                              f"layout .yaml) (default diagonal)")
+    parser.add_argument("--route-start", choices=("beside", "across"), default="beside",
+                        help="a route's start: beside the board (default) or across it, among the pegs (harder)")
     parser.add_argument("--seed", type=int, default=0, help="episode i starts from env.reset(seed=SEED + i) (default 0)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes (default 1)")
     parser.add_argument("--max-steps", type=int, default=DEFAULT_MAX_STEPS,
@@ -249,7 +251,8 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     try:
         env, planner, target = build_run(planner_cls, p, real, args.target, max_steps=args.max_steps,
                                          success_tol=args.success_tol, device=args.device, seed=args.seed,
-                                         options=options, success_worst_tol=args.success_worst_tol)
+                                         options=options, success_worst_tol=args.success_worst_tol,
+                                         route_start=args.route_start)
     except TargetError as exc:
         return refuse(f"bad --target {args.target!r}: {exc}")
     except (ValueError, RuntimeError) as exc:

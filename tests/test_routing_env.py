@@ -142,3 +142,19 @@ def test_a_pixel_pin_action_holds_the_node_nearest_its_point():
     core.step(a)
     expect = core.sim.move(state.pos, node, drag, routing.simulator_pegs(state.pegs), pin)
     torch.testing.assert_close(core.get_state().pos, expect, rtol=0, atol=1e-6)
+
+
+def test_a_start_across_the_board_lies_among_the_pegs_and_clear_of_them():
+    beside = BatchedShapeControl(8, target="route", reward="route_gain")
+    across = BatchedShapeControl(8, target="route", reward="route_gain", route_start="across")
+    for env in (beside, across):
+        env.reset(seed=0)
+    a, b = across.get_state(), beside.get_state()
+    torch.testing.assert_close(a.pegs, b.pegs, rtol=0, atol=0)                 # the same boards
+    centre = lambda s: (s.pos.mean(1) - s.target.mean(1)).norm(dim=-1)
+    assert (centre(a) < 0.06).all() and (centre(b) > 0.15).all()
+    for s in (a, b):                 # drawn clear of the pegs; the settle may bring it into light contact
+        depth = diffdlo.contact.depth(s.pos, routing.simulator_pegs(s.pegs), across.params.rope_radius)
+        assert (depth < across.params.contact_width).all()
+    with pytest.raises(ValueError, match="route_start"):
+        BatchedShapeControl(1, target="route", reward="route_gain", route_start="on_top")

@@ -233,7 +233,8 @@ class BatchedShapeControl:
             targets.append(tgt)
             gen = torch.Generator().manual_seed(int(rng.integers(0, 2**62)))   # drawn even for a fixed start
             if self.start is None:
-                shapes.append(routing.start_beside(layout, self.params, gen)[None].to(self.device, self.dtype)
+                start = routing.start_across if self.options.route_start == "across" else routing.start_beside
+                shapes.append(start(layout, self.params, gen)[None].to(self.device, self.dtype)
                               if self.route else self.sim.random_shape(1, generator=gen))
         ids = torch.tensor(idx, device=self.device)
         pegs = None
