@@ -210,7 +210,7 @@ def start_beside(layout: Layout, p: CableParams, generator: torch.Generator, dis
 def start_across(layout: Layout, p: CableParams, generator: torch.Generator, spread: float = 0.05,
                  tries: int = 200) -> torch.Tensor:
     """(N, 2) a start shape across the board: as ``start_beside`` but centred at most ``spread`` [m] from the route's
-    centre, so the rope lies among the pegs, often on their wrong sides (a harder start: see docs/ROUTING.md)."""
+    centre, so the rope lies among the pegs (docs/ROUTING.md)."""
     return _start(layout, p, generator, lambda: spread * float(torch.rand(1, generator=generator,
                                                                           dtype=torch.float64)), tries)
 

@@ -128,7 +128,7 @@ class EnvOptions:
         'the reward of a move that leaves the workspace under on_exit="fail" is -exit_penalty'))
     route_start: str = option("beside", choices=("beside", "across"), help=(
         'a route\'s start (routes only): "beside" (a random rope 0.2 m from the route\'s centre, clear of the pegs) or '
-        '"across" (within 5 cm of it: the rope lies among the pegs, often on their wrong sides; much harder)'))
+        '"across" (within 5 cm of it: the rope lies among the pegs)'))
     max_pegs: int = option(4, "[1, inf)", says="a positive integer", help=(
         "a route's peg slots: the points observation's \"pegs\" is (max_pegs, 3) of (x, y, radius) [m], rows of "
         "zeros past the layout's pegs (routes only)"))
