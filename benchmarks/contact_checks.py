@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from diffdlo import contact
+from diffdlo import contact, routing
 from diffdlo.params import CableParams, load_params
 from diffdlo.shapes import target_shape
 from diffdlo.simulator import Simulator
@@ -40,10 +40,8 @@ def line(p: CableParams, batch: int = 1) -> torch.Tensor:
 
 
 def winding(pos: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
-    """(B,) the angle [rad] the rope turns around ``centre`` (2,) from its first node to its last."""
-    rel = pos - centre
-    a = torch.atan2(rel[..., 1], rel[..., 0])
-    return ((a.diff(dim=-1) + math.pi) % (2 * math.pi) - math.pi).sum(-1)
+    """(B,) the angle [rad] each rope (B, N, 2) turns around one ``centre`` (2,) (routing.winding)."""
+    return routing.winding(pos, centre.expand(pos.shape[0], 1, 2))[:, 0]
 
 
 def frames_depth(frames: torch.Tensor, pegs: torch.Tensor, radius: float) -> torch.Tensor:

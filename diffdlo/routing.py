@@ -15,7 +15,6 @@ import dataclasses
 import math
 from importlib import resources
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -54,12 +53,19 @@ def winding(pos: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
     return torch.remainder(angle.diff(dim=-1) + math.pi, 2 * math.pi).sub(math.pi).sum(-1)
 
 
-def sides_kept(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
-    """(B, N, 2) ropes, (B, N, 2) routes, (B, K, 3) pegs -> (B,) bool: every peg passed on the route's side (the
-    rope's winding round it within SIDE_MARGIN of the route's). Rows of radius 0 are no pegs (the env's padding)."""
+def wrong_sides(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
+    """(..., N, 2) ropes, routes (N, 2) or (..., N, 2), pegs (K, 3) or (..., K, 3) -> (...,) int64: the pegs a rope
+    passes on the other side than the route (its winding round the peg SIDE_MARGIN or more off the route's). Rows of
+    radius 0 are no pegs (the env's padding)."""
+    pegs = pegs.expand(*pos.shape[:-2], *pegs.shape[-2:])
     centres = pegs[..., :2]
-    kept = (winding(pos, centres) - winding(route.expand_as(pos), centres)).abs() < SIDE_MARGIN
-    return (kept | (pegs[..., 2] <= 0)).all(-1)
+    off = (winding(pos, centres) - winding(route.expand_as(pos), centres)).abs() >= SIDE_MARGIN
+    return (off & (pegs[..., 2] > 0)).sum(-1)
+
+
+def sides_kept(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: every peg passed on the route's side (``wrong_sides`` is 0)."""
+    return wrong_sides(pos, route, pegs) == 0
 
 
 def route_errors(pos: torch.Tensor, route: torch.Tensor) -> torch.Tensor:
@@ -246,13 +252,3 @@ def simulator_pegs(pegs: torch.Tensor) -> torch.Tensor:
     ``Simulator.move`` takes them (it refuses a radius of 0)."""
     far = torch.tensor(FAR_PEG, dtype=pegs.dtype, device=pegs.device).expand_as(pegs)
     return torch.where((pegs[..., 2:] > 0), pegs, far)
-
-
-def layout_from_data(data: Any, p: CableParams, name: str = "custom") -> Layout:
-    """A Layout from a mapping {pegs, route} of arrays (or a Layout), checked."""
-    if isinstance(data, Layout):
-        return data.check(p)
-    if not isinstance(data, dict) or set(data) < {"pegs", "route"}:
-        raise LayoutError(f"a layout must be a Layout or a mapping with 'pegs' and 'route', got {type(data).__name__}")
-    return Layout(torch.as_tensor(np.asarray(data["pegs"], dtype=np.float64)),
-                  torch.as_tensor(np.asarray(data["route"], dtype=np.float64)), name).check(p)

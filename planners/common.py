@@ -166,7 +166,7 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
                              f".npy/.yaml polyline of the rope's link lengths, or a route among pegs: 'route' (a "
                              f"random board per episode) or 'route:NAME' (NAME in {routing.layout_names()} or a "
                              f"layout .yaml) (default diagonal)")
-    parser.add_argument("--route-start", choices=("beside", "across"), default="beside",
+    parser.add_argument("--route-start", choices=routing.ROUTE_STARTS, default="beside",
                         help="a route's start: beside the board (default) or across it, among the pegs")
     parser.add_argument("--seed", type=int, default=0, help="episode i starts from env.reset(seed=SEED + i) (default 0)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes (default 1)")

@@ -37,10 +37,8 @@ SIDE_COST = 0.05
 def route_cost(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
     """(..., N, 2) -> (...,): a route's cost, the mean node distance on the board plus SIDE_COST per peg (K, 3)
     passed on the wrong side."""
-    centres = pegs[:, :2].expand(*pos.shape[:-2], *pegs[:, :2].shape)
-    wrong = ((routing.winding(pos, centres) - routing.winding(route.expand_as(pos), centres)).abs()
-             >= routing.SIDE_MARGIN)
-    return routing.route_errors(pos, route).mean(-1) + SIDE_COST * wrong.sum(-1).to(pos.dtype)
+    return (routing.route_errors(pos, route).mean(-1)
+            + SIDE_COST * routing.wrong_sides(pos, route, pegs).to(pos.dtype))
 
 
 def sequence_cost(states: list[torch.Tensor], target: torch.Tensor, running_weight: float = 0.0,

@@ -15,6 +15,7 @@ from .. import task
 from ..utils.checks import check_fields, option
 from ..params import CableParams, load_params
 from ..rewards import BOARD_REWARDS, REWARDS
+from ..routing import ROUTE_STARTS
 from ..shapes import CURVE_MAX_TURN_DEG, random_curve
 from ..task import ACTION_TYPES, EXIT_RULES, OBS_TYPES
 
@@ -126,7 +127,7 @@ class EnvOptions:
         "-exit_penalty, so leaving pays nothing more, ever; success is still only is_success)"))
     exit_penalty: float = option(0.0, "(-inf, inf)", says="a finite number", help=(
         'the reward of a move that leaves the workspace under on_exit="fail" is -exit_penalty'))
-    route_start: str = option("beside", choices=("beside", "across"), help=(
+    route_start: str = option("beside", choices=ROUTE_STARTS, help=(
         'a route\'s start (routes only): "beside" (a random rope 0.2 m from the route\'s centre, clear of the pegs) or '
         '"across" (within 5 cm of it: the rope lies among the pegs)'))
     max_pegs: int = option(4, "[1, inf)", says="a positive integer", help=(
