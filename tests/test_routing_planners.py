@@ -120,3 +120,12 @@ def test_the_routing_study_runs_missing_cells_reads_done_ones_and_records(tmp_pa
     paired = study.paired_pin({"steps": [3, 5, 4], "solved": [True, True, False], "success": 2},
                               {"steps": [2, 6, 1], "solved": [True, True, True], "success": 3})
     assert paired == {"pairs": 2, "moves_delta": 0.0, "moves_delta_se": 1.0, "success_delta": 1}
+
+
+def test_the_routing_study_refuses_a_target_that_is_no_route(capsys):
+    import pytest
+    from benchmarks.studies import routing_planners as study
+    for target in ("diagonal", "route:nope"):
+        with pytest.raises(SystemExit):
+            study.main(["--out", "unused", "--targets", target])
+        assert f"--targets {target!r}" in capsys.readouterr().err

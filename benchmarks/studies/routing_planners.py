@@ -6,8 +6,11 @@ every planner), and the pin's effect paired episode by episode.
     python -m benchmarks.studies.routing_planners --out runs/routing --record docs/results/routing_planners.json
 
 Each cell is one planner command (``python -m planners.<planner> --target T --pin P --episodes E --seed 0
---max-steps 40``) into OUT/<planner>-<target>-pin<P>; a cell whose results.json exists is read, not re-run
-(``--overwrite`` re-runs). ``--record`` writes the table's numbers (no run folders) for the docs.
+--max-steps 40``, its progress bars shown) into OUT/<planner>-<target>-pin<P>; a cell whose results.json exists is
+read, not re-run, so a stopped study continues where it stopped (``--rerun`` re-runs every cell; a cell folder left
+half-written by a stopped run is refused by the planner until then). ``--record`` writes the table's numbers
+(no run folders) for the docs. It also prints, per target and start (routing.ROUTE_STARTS), the share of 100 resets
+(seeds 0-99) whose start already keeps every peg on its side.
 """
 from __future__ import annotations
 
@@ -18,6 +21,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+from diffdlo import task
+from diffdlo.envs import BatchedShapeControl
+from diffdlo.routing import ROUTE_STARTS
+from diffdlo.shapes import TargetError
+from diffdlo.params import load_params
 from diffdlo.utils.files import check_fresh_file
 
 PLANNERS = ("greedy", "cem", "gradient")
@@ -28,10 +36,18 @@ def cell_dir(out: Path, planner: str, target: str, pin: int) -> Path:
     return out / f"{planner}-{target.split(':')[-1]}-pin{pin}"
 
 
-def command(planner: str, target: str, pin: int, episodes: int, max_steps: int, folder: Path) -> list[str]:
+def command(planner: str, target: str, pin: int, episodes: int, max_steps: int, folder: Path,
+            overwrite: bool = False) -> list[str]:
     return [sys.executable, "-m", f"planners.{planner}", "--target", target, "--pin", str(pin), "--episodes",
-            str(episodes), "--seed", "0", "--max-steps", str(max_steps), "--quiet", "--no-gif", "--overwrite",
-            "--out", str(folder)]
+            str(episodes), "--seed", "0", "--max-steps", str(max_steps), "--no-gif", "--out", str(folder),
+            *(["--overwrite"] if overwrite else [])]
+
+
+def start_sides(target: str, route_start: str, resets: int = 100) -> float:
+    """The share of ``resets`` starts (seeds 0..resets-1) that already pass every peg on the route's side."""
+    env = BatchedShapeControl(resets, target=target, reward="route_gain", route_start=route_start)
+    env.reset(seed=0)
+    return float(env.info()["sides_kept"].float().mean())
 
 
 def summary(results: dict) -> dict:
@@ -42,6 +58,7 @@ def summary(results: dict) -> dict:
             "final_error_cm": 100 * sum(e["final_error"] for e in eps) / len(eps),
             "wrong_side_at_end": sum(1 for e in eps if e.get("sides_kept") is False),
             "sim_evals_per_episode": results["sim_evals"] / len(eps), "plan_s_per_step": results["plan_s_per_step"],
+            "wall_s": results["wall_s"],
             "steps": [e["steps"] for e in eps], "solved": [e["success"] for e in eps]}
 
 
@@ -66,12 +83,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-steps", type=int, default=40)
     ap.add_argument("--planners", nargs="+", default=list(PLANNERS), choices=PLANNERS)
     ap.add_argument("--targets", nargs="+", default=list(TARGETS))
-    ap.add_argument("--overwrite", action="store_true", help="re-run cells that have results")
-    ap.add_argument("--record", type=Path, help="write the numbers to this JSON (refuses an existing one without "
-                                                "--overwrite)")
+    ap.add_argument("--rerun", action="store_true", help="re-run cells that have results (replacing them)")
+    ap.add_argument("--record", type=Path, help="write the numbers to this JSON")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing --record")
     args = ap.parse_args(argv)
     if args.episodes < 1 or args.max_steps < 1:
         ap.error(f"--episodes and --max-steps must be >= 1, got {args.episodes} and {args.max_steps}")
+    for target in args.targets:
+        try:
+            if not task.is_route(target):
+                raise TargetError("not a route ('route' or 'route:NAME')")
+            task.resolve_target(target, load_params("cable"))
+        except TargetError as exc:
+            ap.error(f"--targets {target!r}: {exc}")
     try:
         if args.record is not None:
             check_fresh_file(args.record, args.overwrite)
@@ -79,17 +103,21 @@ def main(argv: list[str] | None = None) -> int:
         print(exc, file=sys.stderr)
         return 2
     table: dict[str, dict] = {}
-    for target in args.targets:
-        for planner in args.planners:
-            for pin in (0, 1):
-                folder = cell_dir(args.out, planner, target, pin)
-                results = folder / "results.json"
-                if args.overwrite or not results.exists():
-                    subprocess.run(command(planner, target, pin, args.episodes, args.max_steps, folder), check=True)
-                table[f"{planner} {target} pin{pin}"] = summary(json.loads(results.read_text()))
+    cells = [(t, planner, pin) for t in args.targets for planner in args.planners for pin in (0, 1)]
+    for i, (target, planner, pin) in enumerate(cells, 1):
+        folder = cell_dir(args.out, planner, target, pin)
+        results = folder / "results.json"
+        if args.rerun or not results.exists():
+            print(f"cell {i}/{len(cells)}: {planner} {target} pin {pin} -> {folder}", file=sys.stderr, flush=True)
+            done = subprocess.run(command(planner, target, pin, args.episodes, args.max_steps, folder, args.rerun))
+            if done.returncode != 0:
+                print(f"cell {planner} {target} pin {pin} failed (exit {done.returncode}); the cells before it are "
+                      f"kept: run the same command again to go on", file=sys.stderr)
+                return done.returncode
+        table[f"{planner} {target} pin{pin}"] = summary(json.loads(results.read_text()))
     print("| planner | target | pin | success | moves (solved) | final error [cm] | wrong side at the end | "
-          "sim moves / episode | s / move | pin: moves vs none (paired) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "sim moves / episode | s / move | wall [s] | pin: moves vs none (paired) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for key, row in table.items():
         planner, target, pin = key.split()
         paired = ""
@@ -101,12 +129,16 @@ def main(argv: list[str] | None = None) -> int:
         moves = "-" if row["moves"] is None else f"{row['moves']:.1f}"
         print(f"| {planner} | {target} | {pin[3:]} | {row['success']}/{row['episodes']} | {moves} | "
               f"{row['final_error_cm']:.2f} | {row['wrong_side_at_end']} | {row['sim_evals_per_episode']:.0f} | "
-              f"{row['plan_s_per_step']:.2f} | {paired} |")
+              f"{row['plan_s_per_step']:.2f} | {row['wall_s']:.0f} | {paired} |")
+    sides = {f"{t} {start}": start_sides(t, start) for t in args.targets for start in ROUTE_STARTS}
+    print("\nStarts that already keep every peg on its side (100 resets, seeds 0-99): "
+          + ", ".join(f"{k} {v:.0%}" for k, v in sides.items()))
     if args.record is not None:
         args.record.parent.mkdir(parents=True, exist_ok=True)
         args.record.write_text(json.dumps({"command": "python -m benchmarks.studies.routing_planners --out "
                                                       f"{args.out} --episodes {args.episodes} --max-steps "
-                                                      f"{args.max_steps}", "cells": table}, indent=1))
+                                                      f"{args.max_steps}", "cells": table,
+                                           "starts_keeping_every_side": sides}, indent=1))
     return 0
 
 
