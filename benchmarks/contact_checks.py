@@ -264,6 +264,19 @@ def onset_gradients(p: CableParams, width: float, sigmas=(0.001, 0.005), grid: i
     return out
 
 
+def sawtooth(p: CableParams, drags=(0.070, 0.080), shares=(0.01, 0.25, 0.5, 0.75, 0.99)) -> dict:
+    """df/ds (onset_result) at s = drag + share x max_speed dt: the move's derivative along the drag within one
+    substep of the path (the release blended within the last substep makes it a sawtooth)."""
+    sim = Simulator(p, dtype=F64)
+    pegs = torch.tensor([ONSET_PEG], dtype=F64)
+    out = {}
+    for drag in drags:
+        s = (drag + torch.tensor(shares, dtype=F64) * p.max_speed * p.dt).requires_grad_(True)
+        (g,) = torch.autograd.grad(onset_result(sim, s, pegs).sum(), s)
+        out[str(drag)] = dict(zip(map(str, shares), g.tolist()))
+    return out
+
+
 def gradient_quality(p: CableParams, widths=(0.0005, 0.0025, 0.005), **kw) -> list[dict]:
     return [onset_gradients(p, w, **kw) for w in widths]
 
@@ -325,7 +338,7 @@ def run_all(p: CableParams | None = None, scenes: int = 256) -> dict:
     t0 = time.perf_counter()
     res = {"forces": forces_vs_autograd(p), "gradcheck": gradcheck_move(p), "depth": max_depth(p, scenes),
            "largest_pull": largest_pull(p), "wrap": wrap(p), "conservation": conservation(p),
-           "gradient_quality": gradient_quality(p)}
+           "gradient_quality": gradient_quality(p), "sawtooth": sawtooth(p)}
     res["seconds"] = time.perf_counter() - t0
     return res
 
@@ -385,6 +398,10 @@ def rows(res: dict, cmd: str = "`python -m benchmarks.contact_checks`") -> list[
             cells += [f"{sm['first_order'][i]:+.3f} ± {sm['first_order_se'][i]:.3f}",
                       f"{sm['zero_order'][i]:+.3f} ± {sm['zero_order_se'][i]:.3f}"]
         out.append("| " + " | ".join(cells) + " |")
+    for drag, by_share in res["sawtooth"].items():
+        values = list(by_share.values())
+        out.append(f"\nAlong the drag, within one substep of its path at s = {float(drag):.3f} m (s + 0.01 ... 0.99 of "
+                   f"max_speed dt): df/ds {', '.join(f'{v:+.3f}' for v in values)}.")
     return out
 
 
