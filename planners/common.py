@@ -92,12 +92,14 @@ def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *
                           target.route.to(env.device, env.dtype) if route else target)
 
 
-def seen(points: torch.Tensor, perception, rope: bool = True) -> torch.Tensor:
+def seen(points: torch.Tensor, perception, rope: bool = True, pegs: torch.Tensor | None = None) -> torch.Tensor:
     """(N, 2) positions -> the (N, 2) positions ``perception`` (diffdlo.perception.Perception) reads from the env's
-    picture of them (obs_type "image" with end markers, at the perception's image size and view)."""
+    picture of them (obs_type "image" with end markers, at the perception's image size and view); ``pegs`` (K, 3): a
+    route's board, drawn in the picture as the env draws it and known to the reading."""
     from diffdlo.perception import render_uint8
-    picture = render_uint8(points[None].float(), perception.image_size, perception.view_size, rope)
-    return perception.read(picture, rope=rope)[0].to(points)
+    board = None if pegs is None else pegs[None].float()
+    picture = render_uint8(points[None].float(), perception.image_size, perception.view_size, rope, board)
+    return perception.read(picture, rope=rope, pegs=board)[0].to(points)
 
 
 def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", progress: bool = True,
@@ -113,7 +115,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     state = env.get_state(generators=False)
     target, target_name = state.target[0], state.target_names[0]
     pegs = None if state.pegs is None else state.pegs[0][state.pegs[0][:, 2] > 0]       # a route's board
-    planned_target = target if perception is None else seen(target, perception, rope=False)
+    planned_target = target if perception is None else seen(target, perception, rope=False, pegs=pegs)
     seen_errors: list[float] = []
     frames = [state.pos[0]]
     errors = [float(state.info["shape_error"][0])]
@@ -127,7 +129,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         t0 = time.perf_counter()
         rope = frames[-1].clone()
         if perception is not None:
-            rope = seen(rope, perception)
+            rope = seen(rope, perception, pegs=pegs)        # a route: read among its pegs, planned among the true ones
             seen_errors.append(float((rope - frames[-1]).norm(dim=-1).mean()))
         action = planner.plan(rope, planned_target) if pegs is None else planner.plan(rope, planned_target, pegs)
         plan_s += time.perf_counter() - t0
@@ -258,8 +260,6 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     except (ValueError, RuntimeError) as exc:
         parser.error(str(exc))
     perception = None
-    if args.perception is not None and env.route:
-        parser.error("--perception reads ropes without pegs: a route (--target route...) plans from the state")
     if args.perception is not None:
         from diffdlo.perception import Perception, PerceptionError
         try:
@@ -313,7 +313,8 @@ def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor |
         "episodes": records, "env_steps": steps, "wall_s": wall,
         "sim_evals": sum(e["sim_evals"] for e in episodes),
         "plan_s_per_step": plan_s / max(steps, 1), "max_steps": args.max_steps,
-        "shapes": shapes_record(episodes[0]["frames"][0], episodes[0]["frames"][-1], targets[0]),
+        "shapes": dict(shapes_record(episodes[0]["frames"][0], episodes[0]["frames"][-1], targets[0]),
+                       **({"pegs": episodes[0]["pegs"]} if "pegs" in episodes[0] else {})),   # a route's board
         "config": {k: v for k, v in vars(args).items() if k not in ("out", "quiet")},
         **(extra or {}),
     }

@@ -79,7 +79,8 @@ def test_grid_is_data_and_filters_work(tmp_path):
         if kind == "agent":
             assert "eval_targets" in full["methods"][m]["variants"][v].get("set", {}), (m, v)
     heldout = set(full["heldout"])
-    assert {"horizontal", "vertical", "diagonal", "antidiagonal", "random", "random_curve"} | heldout \
+    routes = set(full["routes"])                        # the routing tasks (tests/test_compare_routing.py)
+    assert {"horizontal", "vertical", "diagonal", "antidiagonal", "random", "random_curve"} | heldout | routes \
         == {c["target"] for c in cells}
     assert not any(c["target"] in heldout for c in cells if c["kind"] == "agent")     # no learner trains on them
     arc = compare.build_cells(full, tmp_path, methods=["cem"], targets=["arc"], seeds=[0])[0]

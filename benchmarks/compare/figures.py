@@ -18,7 +18,7 @@ import numpy as np
 
 from diffdlo.utils.files import replacing
 from .costs import acting_sim_evals
-from .grid import main_rows
+from .grid import main_rows, route_targets
 from .precision import ladder_points, short_label, split_done
 from .summary import heldout_source
 from .stats import t_quantile
@@ -288,6 +288,8 @@ def _gallery_panels(grid: dict[str, Any], done: list, target: str) -> list[tuple
     collected before the records held shapes), or None where it has not run."""
     main = grid.get("main") or {}
     keep = set(main_rows(grid)) | set(main_rows(grid, image=True)) if main else None
+    if target in route_targets(grid):            # a routing task: every row that runs there (none is a main row)
+        keep = None
     trained_on = heldout_source(grid) if main else None
     rows: dict[tuple, dict[int, Any]] = {}
     for c, r in done:
@@ -310,10 +312,12 @@ def _gallery_panels(grid: dict[str, Any], done: list, target: str) -> list[tuple
     return out
 
 
-def final_errors(final: np.ndarray, target: np.ndarray) -> str:
+def final_errors(final: np.ndarray, target: np.ndarray, on_board: bool = False) -> str:
     """A gallery panel's caption: the mean and the worst node's error [mm] of a final shape against its target,
-    centroids aligned as the task's errors (diffdlo.rewards.node_errors)."""
-    node = np.linalg.norm((final - final.mean(0)) - (target - target.mean(0)), axis=1)
+    centroids aligned as the task's errors (diffdlo.rewards.node_errors), or where they lie (``on_board``: a route,
+    whose pegs fix where it lies)."""
+    node = (np.linalg.norm(final - target, axis=1) if on_board
+            else np.linalg.norm((final - final.mean(0)) - (target - target.mean(0)), axis=1))
     return f"{node.mean() * 1e3:.1f} / {node.max() * 1e3:.1f} mm"
 
 
@@ -324,15 +328,20 @@ def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
     episode in each column (the episodes are paired) around that column's centre. The view holds 98 % of the drawn
     points, so one rope that drifted off does not shrink every other to a sliver; what lies beyond it is cut at the
     panel's edge."""
+    route = target in route_targets(grid)
+
     def placed(sh):
-        """(start, final, target moved onto the final shape's centroid) of one episode's shapes."""
+        """(start, final, target moved onto the final shape's centroid; a route's where it lies) of one episode's
+        shapes, and a route's pegs ((K, 3) x, y, radius; empty for a free rope)."""
         final, tgt = np.array(sh["final"]), np.array(sh["target"])
-        return np.array(sh["start"]), final, tgt - tgt.mean(0) + final.mean(0)
+        pegs = np.array(sh.get("pegs") or np.zeros((0, 3)), dtype=float).reshape(-1, 3)
+        return (np.array(sh["start"]), final, tgt if route else tgt - tgt.mean(0) + final.mean(0)), pegs
 
     panels = _gallery_panels(grid, done, target)
     seeds = list(grid["seeds"])
-    rows = [(label, [sh if sh is None or isinstance(sh, str) else placed(sh) for sh in row])
+    rows = [(label, [sh if sh is None or isinstance(sh, str) else placed(sh)[0] for sh in row])
             for label, row in panels]
+    boards = [[None if sh is None or isinstance(sh, str) else placed(sh)[1] for sh in row] for _, row in panels]
     # A column's panels share its centre (one episode, the same start shape): the median of its panels' middles, so
     # a rope that drifted off does not move it; every panel shares one half-width.
     columns = [[p for _, row in rows if isinstance(p := row[j], tuple)] for j in range(len(seeds))]
@@ -362,13 +371,17 @@ def _gallery(plt, grid: dict[str, Any], done: list, target: str, note: str):
                         va="center", fontsize=9, color="0.5")
                 continue
             start, final, tgt = shapes
+            for x, y, r in boards[i][j]:
+                ax.add_patch(plt.Circle((x, y), r, color="0.45", zorder=0))
             ax.plot(*start.T, color="0.7", lw=1)
             ax.plot(*tgt.T, "k--", lw=1)
             ax.plot(*final.T, color="tab:blue", lw=1.5)
-            ax.text(0.03, 0.03, final_errors(final, tgt), transform=ax.transAxes, fontsize=8, color="0.3",
-                    bbox=dict(fc="white", ec="none", alpha=0.8, pad=1))
+            ax.text(0.03, 0.03, final_errors(final, tgt, on_board=route), transform=ax.transAxes, fontsize=8,
+                    color="0.3", bbox=dict(fc="white", ec="none", alpha=0.8, pad=1))
         axes[i, 0].set_ylabel(label, fontsize=9, rotation=0, ha="right", va="center")
-    fig.suptitle(f"{target}: start (grey), final shape (blue), target (dashed; at the final shape's centroid)"
+    what = ("route (dashed, on the board), pegs (dark grey discs)" if route
+            else "target (dashed; at the final shape's centroid)")
+    fig.suptitle(f"{target}: start (grey), final shape (blue), {what}"
                  f"{note}\nin each panel: final error, mean / worst node [mm]; view ±{lim:.2f} m in every panel "
                  "(a column: one episode, one centre)" + ("; shapes beyond it are cut" if cut else ""), fontsize=10)
     return fig

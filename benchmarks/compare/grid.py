@@ -33,6 +33,9 @@ def load_grid(quick: bool = False, path: Path | str = GRID_FILE) -> dict[str, An
     bad = [t for t in main.get("targets", []) if t not in grid["targets"]]
     if bad:
         raise ValueError(f"{path}: grid {name!r}: main targets {bad} are not targets of the grid")
+    bad = [t for t in grid.get("routes") or {} if t not in grid["targets"]]
+    if bad:
+        raise ValueError(f"{path}: grid {name!r}: routes {bad} are not targets of the grid")
     for method, spec in grid["methods"].items():
         for variant, v in (spec.get("variants") or {}).items():
             if "tolerance" in (v or {}):
@@ -74,6 +77,27 @@ def row_tolerance(grid: dict[str, Any], method: str, variant: str) -> tuple[floa
     from its episodes' recorded errors), or None for a row read at its episodes' own success."""
     v = grid["methods"].get(method, {}).get("variants", {}).get(variant) or {}
     return check_tolerance(v["tolerance"]) if "tolerance" in v else None
+
+
+def route_targets(grid: dict[str, Any]) -> list[str]:
+    """The grid's routing tasks (its ``routes``: a task's key -> the env's target, e.g. route_hook_wrap ->
+    "route:hook_wrap"), in the grid's order."""
+    routes = grid.get("routes") or {}
+    return [t for t in grid["targets"] if t in routes]
+
+
+def variant_targets(grid: dict[str, Any], variant: dict[str, Any]) -> list[str]:
+    """The tasks a variant runs: its own ``targets``, by default the grid's free-rope tasks (every target but the
+    routes: a row runs among pegs only where it says so)."""
+    routes = grid.get("routes") or {}
+    return list(variant["targets"]) if "targets" in (variant or {}) else [t for t in grid["targets"]
+                                                                            if t not in routes]
+
+
+def env_target(grid: dict[str, Any], target: str) -> str:
+    """What a planner is given as --target for the grid's task ``target``: a held-out shape's file, a route's env
+    target, else the task's own name."""
+    return grid.get("heldout", {}).get(target) or (grid.get("routes") or {}).get(target) or target
 
 
 def method_label(grid: dict[str, Any], method: str) -> str:
@@ -132,7 +156,7 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
         for variant, v in spec["variants"].items():
             if variants and variant not in variants:
                 continue
-            for target in v.get("targets", grid["targets"]):
+            for target in variant_targets(grid, v):
                 if target not in grid["targets"] or (targets and target not in targets):
                     continue
                 for seed in grid["seeds"]:
@@ -150,8 +174,7 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
                               "set": _filled(v.get("set"), out=out, target=target, seed=seed)}
                     if spec["kind"] == "planner":
                         base = ["-m", f"planners.{method}", *_flags(filled["args"]), "--quiet", "--no-gif"]
-                        spec_target = grid.get("heldout", {}).get(target, target)       # a held-out name -> its file
-                        cell["argv"] = base + ["--target", spec_target, "--seed", str(eval_seed), "--episodes",
+                        cell["argv"] = base + ["--target", env_target(grid, target), "--seed", str(eval_seed), "--episodes",
                                                str(grid["episodes"]), "--out", str(d)]
                     else:
                         sets = [x for k, val in filled["set"].items() for x in ("--set", f"{k}={val}")]

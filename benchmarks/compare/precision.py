@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from .grid import ROOT, method_label, row_tolerance
+from .grid import ROOT, method_label, row_tolerance, variant_targets
 from .stats import fmt_ci, success_move, t_interval, wilson
 from .summary import _episodes, pairs, paired_differences, paired_texts
 
@@ -99,7 +99,7 @@ def precision_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[s
     rows = []
     for method, variant, (tol, worst) in precise_rows(grid):
         v = grid["methods"][method]["variants"][variant]
-        for task in [t for t in grid["targets"] if t in v.get("targets", grid["targets"])]:
+        for task in [t for t in grid["targets"] if t in variant_targets(grid, v)]:
             eps = _episodes(grid, done, method, variant, task, task)
             if not eps:
                 continue

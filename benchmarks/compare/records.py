@@ -24,7 +24,8 @@ from .grid import ROOT, cell_dir, command_line
 from .settings import argv_changes, comparable_argv
 
 RESULTS_FILE = ROOT / "docs" / "results" / "cells.jsonl"
-EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name")
+EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name",
+                "sides_kept")     # a route's side test at the episode's end (routing cells only)
 KEY = ("method", "variant", "target", "seed")
 
 

@@ -2,7 +2,8 @@
 committed results file (docs/results/cells.jsonl) or the finished cells of a run folder. First the main grid as one
 table and one figure, the notes on what wins where, the paired differences against CEM and the cells not run yet with
 their cost, the precision rows' section (precision.py, where some of their cells finished: those rows are in no
-other table); then the definitions, one table per task with the exact commands per seed, the galleries, the cost
+other table), the routing section (routing.py: the rows among pegs, the pin paired against no pin, their
+galleries); then the definitions, one table per task with the exact commands per seed, the galleries, the cost
 section and the figures. A finished cell whose settings differ from the grid's now is left out and named at the
 top."""
 from __future__ import annotations
@@ -17,8 +18,9 @@ from typing import Any
 from .costs import cost_section, row_cost
 from .figures import figure_names, make_cost_figures, make_figures
 from diffdlo.utils.files import write_text_atomic
-from .grid import ROOT, build_cells, cell_dir, main_rows
+from .grid import ROOT, build_cells, cell_dir, main_rows, route_targets
 from .precision import precision_section, split_done
+from .routing import routing_section
 from .records import as_results, make_record, record_changes, record_key
 from .settings import changed_cells, describe_changes
 from .stats import fmt_ci as _fmt_ci, row_stats
@@ -330,10 +332,12 @@ def write_report(grid: dict[str, Any], out: Path | str, doc: Path | str, figures
         lines += cpu_hours(grid, by_key)
     precision = [n for n in names if n.endswith("precision.png")]
     lines += precision_section(grid, by_key, f"{rel}/{precision[0]}" if precision else None)
+    route_galleries = [n for n in names for t in route_targets(grid) if n.endswith(f"gallery_{t}.png")]
+    lines += routing_section(grid, by_key, [f"{rel}/{n}" for n in route_galleries])
     lines += _definitions(grid, loaded) + sections
     if costs:
         lines += cost_section(costs, grid)
-    rest = [n for n in names if not n.endswith(("summary.png", "precision.png"))]
+    rest = [n for n in names if not n.endswith(("summary.png", "precision.png")) and n not in route_galleries]
     if rest:
         lines += ["## Figures" + (" (quick run: format only, not results)" if quick else ""), ""]
         if any("gallery_" in n for n in rest):

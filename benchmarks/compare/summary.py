@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .costs import acting_sim_evals
-from .grid import main_rows, method_label
+from .grid import main_rows, method_label, variant_targets
 from .stats import t_interval
 
 PAIR_TOL = 1e-6          # m: two episodes with start errors this close (and the same target) are the same episode
@@ -30,7 +30,7 @@ def task_source(grid: dict[str, Any], method: str, variant: str, task: str) -> s
     held-out shapes, ``eval_targets``); every other row by its own cells on the task."""
     spec = grid["methods"][method]
     v = spec["variants"][variant]
-    targets = v.get("targets", grid["targets"])
+    targets = variant_targets(grid, v)
     if task in grid.get("heldout", {}) and spec["kind"] == "agent":
         source = heldout_source(grid)
         return source if source in targets and "eval_targets" in (v.get("set") or {}) else None
@@ -269,7 +269,7 @@ def missing_section(grid: dict[str, Any], done: dict[tuple, dict]) -> list[str]:
         for method, variant in main_rows(grid, image):
             v = grid["methods"][method]["variants"][variant]
             parts, n = [], 0
-            for target in v.get("targets", grid["targets"]):
+            for target in variant_targets(grid, v):
                 if target not in main.get("targets", []) or (grid["methods"][method]["kind"] == "agent"
                                                             and target in grid.get("heldout", {})):
                     continue

@@ -1,0 +1,117 @@
+"""The report's routing section (docs/ROUTING.md's task: the rope laid along a route among pegs): per routing task of
+the grid (its ``routes``), each row that runs there with its success (the error on the board under 1 cm AND every
+peg on the route's side), the episodes that ended on the route but round a peg the wrong way, and the second
+gripper's effect: each ``pin`` row paired, episode by episode, against the same method's row that differs from it
+by the pin alone (its args without ``pin``).
+
+The rows also appear in the per-task tables (one per routing task, as every task); this section is where the pin's
+pairing and the side test are read."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .grid import route_targets, variant_targets
+from .stats import fmt_ci, t_interval, wilson
+from .summary import _episodes, pairs, paired_differences, paired_texts
+
+HEAD = ["method", "variant", "task", "seeds × episodes", "success @1 cm, every peg on its side", "moves (solved)",
+        "under 1 cm, a peg on the wrong side", "final error [cm]", "sim moves / episode", "s / move",
+        "pin: Δ success [pp]", "pin: Δ moves (both solved)", "pairs"]
+
+
+def routing_rows(grid: dict[str, Any]) -> list[tuple[str, str]]:
+    """The (method, variant) rows that run some routing task, in the grid's order."""
+    routes = set(route_targets(grid))
+    return [(m, v) for m, spec in grid["methods"].items() for v, entry in spec["variants"].items()
+            if routes & set(variant_targets(grid, entry or {}))]
+
+
+def pin_partner(grid: dict[str, Any], method: str, variant: str) -> str | None:
+    """The variant of ``method`` that a pin row (args with a true ``pin``) is paired against: the one whose args are
+    its args without the pin (None for a row without a pin, or where there is no such variant)."""
+    variants = grid["methods"][method]["variants"]
+    args = dict((variants[variant] or {}).get("args") or {})
+    if not args.pop("pin", 0):
+        return None
+    for other, entry in variants.items():
+        theirs = dict((entry or {}).get("args") or {})
+        if other != variant and not theirs.get("pin") and theirs == args:
+            return other
+    return None
+
+
+def wrong_side(e: dict[str, Any]) -> bool:
+    """An episode that ended within 1 cm on the board but with a peg on the wrong side (the side test failed)."""
+    return e.get("sides_kept") is False and e["final_error"] < 0.01
+
+
+def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str, Any]]:
+    """Per routing task and row with finished cells: its statistics and, for a pin row, the paired differences
+    against its partner without the pin."""
+    out = []
+    for task in route_targets(grid):
+        for method, variant in routing_rows(grid):
+            if task not in variant_targets(grid, grid["methods"][method]["variants"][variant] or {}):
+                continue
+            eps = _episodes(grid, done, method, variant, task, task)
+            if not eps:
+                continue
+            runs = [done[(method, variant, task, s)] for s in grid["seeds"] if (method, variant, task, s) in done]
+            per_seed = [[e for (s, _), e in sorted(eps.items()) if s == seed] for seed in sorted({s for s, _ in eps})]
+            flat = [e for seed in per_seed for e in seed]
+            row = {"method": method, "variant": variant, "task": task, "seeds": len(per_seed),
+                   "episodes": len(flat),
+                   "success": t_interval([np.mean([e["success"] for e in s]) for s in per_seed], (0.0, 1.0)),
+                   "success_wilson": wilson(sum(e["success"] for e in flat), len(flat)),
+                   "solved": sum(e["success"] for e in flat),
+                   "moves": float(np.mean([e["steps"] for e in flat if e["success"]])) if any(
+                       e["success"] for e in flat) else float("nan"),
+                   "wrong_side": sum(wrong_side(e) for e in flat),
+                   "final_error": t_interval([np.mean([e["final_error"] for e in s]) for s in per_seed],
+                                             (0.0, float("inf"))),
+                   "sim_evals": float(np.mean([r["sim_evals"] / len(r["episodes"]) for r in runs])),
+                   "s_per_move": float(np.mean([r["plan_s_per_step"] for r in runs])),
+                   "partner": pin_partner(grid, method, variant)}
+            if row["partner"]:
+                base = _episodes(grid, done, method, row["partner"], task, task)
+                pr, unverified, mismatched = pairs(eps, base)
+                if pr:
+                    ds, dm = paired_differences(pr)
+                    row["pin"] = {"ds": ds, "dm": dm, "pairs": len(pr), "unverified": unverified,
+                                  "mismatched": mismatched}
+            out.append(row)
+    return out
+
+
+def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: list[str] | None = None
+                    ) -> list[str]:
+    """The markdown section (none where no routing cell finished); ``galleries``: the routing galleries' links."""
+    data = routing_data(grid, done)
+    if not data:
+        return []
+    lines = ["## Routing: the rope laid along a route among pegs", "",
+             "The planners on the routing task of docs/ROUTING.md: random boards (`route`: 2-4 pegs and a route drawn "
+             "per episode) and the two held-out layouts, each episode starting beside the board; at most the row's "
+             "max-steps moves. **Success**: the mean node error on the board (no centroid alignment: the pegs fix "
+             "where the route lies) under 1 cm AND every peg passed on the route's side (the winding test); "
+             "t-interval over seeds, then Wilson over the pooled episodes. **Under 1 cm, a peg on the wrong side**: "
+             "episodes that ended on the route but round a peg the wrong way (the distance alone would have called "
+             "them solved). **pin**: the row with the second gripper minus the same row without it, on the same "
+             "episodes (paired as the other sections: same seed and episode index, checked from the start error and "
+             "target); Δ moves over the episodes both solved, 95 % paired t-interval.", "",
+             "| " + " | ".join(HEAD) + " |", "|" + "---|" * len(HEAD)]
+    for r in data:
+        moves = "—" if np.isnan(r["moves"]) else f"{r['moves']:.1f}; {r['solved']}"
+        pin = (paired_texts(r["pin"]["ds"], r["pin"]["dm"], r["pin"]["pairs"], r["pin"]["unverified"],
+                            r["pin"]["mismatched"]) if "pin" in r else ["", "", ""])
+        lines.append("| " + " | ".join([
+            r["method"], r["variant"], r["task"],
+            f"{r['seeds']} × {r['episodes'] // max(r['seeds'], 1)}",
+            f"{fmt_ci(*r['success'])}; {fmt_ci(*r['success_wilson'])}", moves,
+            f"{r['wrong_side']} of {r['episodes']}", fmt_ci(*r["final_error"], scale=100.0),
+            f"{r['sim_evals']:.0f}", f"{r['s_per_move']:.2f}", *pin]) + " |")
+    lines.append("")
+    lines += [f"![{name.rsplit('.', 1)[0].rsplit('/', 1)[-1]}]({name})" for name in galleries or []]
+    return lines + ([""] if galleries else [])

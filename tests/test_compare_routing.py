@@ -1,0 +1,118 @@
+"""The comparison's routing rows (issue 59): compare.yaml's `route` tasks (a task key -> the env's route target),
+which only the `route*` variants run, their planner commands, and the report's routing section: the side test's
+failures counted apart, the pin row paired against the same row without the pin, and galleries drawn on the board
+with the pegs."""
+import copy
+
+import numpy as np
+import pytest
+
+from benchmarks import compare
+from benchmarks.compare.figures import _gallery, _gallery_panels, final_errors
+from benchmarks.compare.grid import env_target, load_grid, route_targets, variant_targets
+from benchmarks.compare.routing import pin_partner, routing_data, routing_rows, routing_section
+from diffdlo import routing
+
+ROUTE_ROWS = [(m, v) for m in ("greedy", "cem", "gradient") for v in ("route", "route_pin")]
+
+
+def test_only_the_route_rows_run_the_routing_tasks_each_on_its_env_target():
+    grid = load_grid()
+    routes = route_targets(grid)
+    assert routes == ["route", "route_hook_wrap", "route_zigzag_four"]
+    assert {env_target(grid, t).split(":")[-1] for t in routes[1:]} == set(routing.HELD_OUT_LAYOUTS)
+    assert routing_rows(grid) == ROUTE_ROWS
+    cells = compare.build_cells(grid, "/tmp/out")
+    on_routes = [c for c in cells if c["target"] in routes]
+    assert {(c["method"], c["variant"]) for c in on_routes} == set(ROUTE_ROWS)
+    assert len(on_routes) == len(ROUTE_ROWS) * len(routes) * len(grid["seeds"])
+    for c in on_routes:
+        argv = c["argv"]
+        assert argv[argv.index("--target") + 1] == env_target(grid, c["target"])
+        assert argv[argv.index("--max-steps") + 1] == "40"
+        assert ("--pin" in argv) == c["variant"].endswith("_pin")
+    # every other row runs the free rope only, as before the routes came
+    for method, spec in grid["methods"].items():
+        for variant, entry in spec["variants"].items():
+            if (method, variant) not in ROUTE_ROWS:
+                assert not set(variant_targets(grid, entry or {})) & set(routes), (method, variant)
+
+
+def test_a_pin_row_is_paired_with_the_row_that_differs_from_it_by_the_pin_alone():
+    grid = load_grid()
+    for method in ("greedy", "cem", "gradient"):
+        assert pin_partner(grid, method, "route_pin") == "route"
+        assert pin_partner(grid, method, "route") is None
+    grid = copy.deepcopy(grid)
+    grid["methods"]["cem"]["variants"]["route"]["args"]["candidates"] = 100      # no longer the pin alone
+    assert pin_partner(grid, "cem", "route_pin") is None
+
+
+def test_a_route_task_that_is_no_target_of_the_grid_is_refused(tmp_path):
+    import yaml
+    grids = yaml.safe_load(compare.GRID_FILE.read_text())
+    grids["full"]["routes"]["route_nowhere"] = "route:nowhere"
+    path = tmp_path / "grid.yaml"
+    path.write_text(yaml.safe_dump(grids))
+    with pytest.raises(ValueError, match="route_nowhere"):
+        load_grid(path=path)
+
+
+def _episode(i, success, steps, final_error, sides_kept, start_error):
+    return {"success": success, "steps": steps, "final_error": final_error, "start_error": start_error,
+            "sides_kept": sides_kept}
+
+
+def _done(grid):
+    """Two seeds of cem/route and cem/route_pin on `route`: the pin row solves one more episode and saves moves."""
+    done = {}
+    for seed in (0, 1):
+        base = [_episode(i, i != 3, 10 + i, 0.008 if i != 3 else 0.009, i != 3, 0.3 + 0.01 * i) for i in range(4)]
+        # episode 3 of the row without the pin ended under 1 cm but round a peg the wrong way
+        pin = [_episode(i, True, 9 + i, 0.007, True, 0.3 + 0.01 * i) for i in range(4)]
+        for variant, eps in (("route", base), ("route_pin", pin)):
+            done[("cem", variant, "route", seed)] = {"episodes": eps, "sim_evals": 1000 * len(eps),
+                                                     "plan_s_per_step": 0.25, "wall_s": 10.0}
+    return done
+
+
+def test_the_routing_section_counts_wrong_sides_and_pairs_the_pin_episode_by_episode():
+    grid = load_grid()
+    done = _done(grid)
+    rows = {r["variant"]: r for r in routing_data(grid, done)}
+    assert rows["route"]["solved"] == 6 and rows["route"]["wrong_side"] == 2      # 1 per seed
+    assert rows["route_pin"]["solved"] == 8 and rows["route_pin"]["wrong_side"] == 0
+    pin = rows["route_pin"]["pin"]
+    assert pin["pairs"] == 8
+    assert sorted(pin["ds"]) == [0.0] * 6 + [1.0] * 2                 # success: pin minus none
+    assert pin["dm"] == [-1.0] * 6                                    # moves over the 6 pairs both solved
+    assert "pin" not in rows["route"]
+    text = "\n".join(routing_section(grid, done, ["figures/gallery_route.png"]))
+    assert "## Routing" in text and "2 of 8" in text and "-1.0" in text
+    assert "![gallery_route](figures/gallery_route.png)" in text
+    # a mismatched start (another episode) is left out of the pairing, named
+    done[("cem", "route_pin", "route", 1)]["episodes"][0]["start_error"] = 0.5
+    assert routing_data(grid, done)[1]["pin"]["mismatched"] == 1
+    assert routing_section(grid, {}) == []
+
+
+def test_a_route_gallery_draws_the_pegs_and_measures_the_error_on_the_board():
+    pytest.importorskip("matplotlib")
+    from benchmarks.compare.figures import _pyplot
+    grid = load_grid()
+    grid = dict(grid, seeds=[0])
+    route = np.stack([np.linspace(0, 0.5, 6), np.zeros(6)], 1)
+    final = route + [0.0, 0.004]                     # 4 mm off everywhere: on the board, not after alignment
+    shapes = {"start": (route + 0.2).tolist(), "final": final.tolist(), "target": route.tolist(),
+              "pegs": [[0.1, 0.03, 0.01], [0.3, -0.03, 0.02]]}
+    done = [({"method": "cem", "variant": "route", "target": "route", "seed": 0, "kind": "planner"},
+             {"shapes": shapes, "episodes": []})]
+    assert final_errors(final, route) == "0.0 / 0.0 mm"
+    assert final_errors(final, route, on_board=True) == "4.0 / 4.0 mm"
+    assert [label for label, _ in _gallery_panels(grid, done, "route")] == ["cem/route"]   # no main row needed
+    plt = _pyplot()
+    fig = _gallery(plt, grid, done, "route", "")
+    ax = fig.axes[0]
+    assert sorted(round(p.radius, 3) for p in ax.patches) == [0.01, 0.02]
+    assert any(t.get_text() == "4.0 / 4.0 mm" for t in ax.texts)
+    plt.close(fig)
