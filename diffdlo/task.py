@@ -44,7 +44,7 @@ ACTION_TYPES = ("node", "pixel", "node_pin", "pixel_pin")
 ACTION_DIMS = {"node": 3, "pixel": 4, "node_pin": 4, "pixel_pin": 6}
 ROUTE = "route"                # the routing family: a random layout of pegs and a route per episode
 ROUTE_PREFIX = "route:"        # a fixed layout: "route:NAME" (diffdlo/layouts) or "route:PATH.yaml"
-ROUTE_OBS = ("points", "image", "image_single")       # the observations that carry the pegs
+ROUTE_OBS = ("points", "image", "image_single", "perceived")      # the observations that carry the pegs
 EXIT_RULES = ("truncate", "fail")
 CUSTOM = "custom"       # the label of a target given as an array or a file
 

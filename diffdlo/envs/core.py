@@ -264,7 +264,8 @@ class BatchedShapeControl:
                 self._pictures.pegs[ids] = fresh.pegs
             if self._seen_target is not None:
                 pictures = task.observe("image", start, s.target[ids], self.image_size, self.view_size, fresh)
-                self._seen_target[ids] = self.perception.read(pictures["target_image"], rope=False)
+                self._seen_target[ids] = self.perception.read(pictures["target_image"], rope=False,
+                                                              pegs=None if s.pegs is None else s.pegs[ids])
 
     def decode(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, A) clipped actions in [0, 1] (sim dtype) -> grasped node (B,) int64 and drag (B, 2) [m]."""
@@ -353,10 +354,12 @@ class BatchedShapeControl:
         if self.obs_type != "perceived":
             return task.observe(self.obs_type, s.pos, s.target, self.image_size, self.view_size, self._pictures,
                                 s.pegs)
+        # a route's pegs are drawn in both pictures and known (the board's fixtures): the perception reads the rope
+        # and the route with them, and the observation carries them exactly, as "points" does
         pictures = task.observe("image", s.pos, s.target, self.image_size, self.view_size, self._pictures)
         if self._seen_target is None:
-            self._seen_target = self.perception.read(pictures["target_image"], rope=False)
-        return self.perception.perceive(pictures, target=self._seen_target)
+            self._seen_target = self.perception.read(pictures["target_image"], rope=False, pegs=s.pegs)
+        return self.perception.perceive(pictures, target=self._seen_target, pegs=s.pegs)
 
     def render(self, size: int = RENDER_SIZE) -> torch.Tensor:
         """(B, size, size, 3) uint8 pictures of the ropes (red) over their targets (blue), for people."""

@@ -83,7 +83,7 @@ class EnvOptions:
         'uint8 (S, S, 3) of the rope and of the target), "image_single" (dict image: rope drawn over the target in '
         'one picture) or "perceived" (dict node_poses, target_poses like "points", but READ from the "image" '
         "pictures, end markers drawn, by the perception network ``perception``: diffdlo/perception/network.py; the target "
-        "is read once per episode)"))
+        'is read once per episode; a route\'s known pegs are given to the reading and carried exactly as "pegs")'))
     action_type: str = option("node", choices=ACTION_TYPES, help=(
         '"node" (eq 2.6, [0, 1]^3: node = round(a0 (N-1)), dx, dy = a 2 s - s with s = params.action_scale) or '
         '"pixel" (eq 2.5, [0, 1]^4: (a0, a1) = (column, row) fractions of the image view window, row 0 at the top; '

@@ -51,21 +51,79 @@ def ink(images: torch.Tensor) -> torch.Tensor:
     return 1.0 - images.permute(0, 3, 1, 2).float() / 255.0
 
 
-def draw(points: torch.Tensor, size: int, view_size: float, rope: bool = True) -> torch.Tensor:
+def draw(points: torch.Tensor, size: int, view_size: float, rope: bool = True,
+         board: torch.Tensor | None = None) -> torch.Tensor:
     """(B, N, 2) curves -> (B, S, S, 3) float pictures in [0, 255] as ``diffdlo.task.observe`` draws them with the
-    end marker (before rounding to uint8): differentiable with respect to ``points``."""
+    end marker (before rounding to uint8): differentiable with respect to ``points``. ``board``: (B, S, S) coverage
+    of a route's pegs (``board_coverage``), drawn grey under the curve as the env draws it; None: no pegs."""
     line = rimage.ROPE_COLOR if rope else rimage.TARGET_COLOR
     dot = rimage.ROPE_END_COLOR if rope else rimage.TARGET_END_COLOR
     img = torch.tensor(rimage.BACKGROUND, dtype=points.dtype, device=points.device)
-    for cov, color in ((rimage.coverage(points, size, view_size), line),
-                       (rimage.end_marker(points, size, view_size), dot)):
+    layers = ((rimage.coverage(points, size, view_size), line), (rimage.end_marker(points, size, view_size), dot))
+    if board is not None:
+        layers = ((board.to(points.dtype), rimage.PEG_COLOR),) + layers
+    for cov, color in layers:
         a = cov.unsqueeze(-1)
         img = img * (1 - a) + torch.tensor(color, dtype=points.dtype, device=points.device) * a
     return img
 
 
-def render_uint8(points: torch.Tensor, size: int, view_size: float, rope: bool = True) -> torch.Tensor:
-    return draw(points.detach(), size, view_size, rope).round().clamp(0, 255).to(torch.uint8)
+def board_coverage(pegs: torch.Tensor | None, size: int, view_size: float,
+                   batch: int | None = None) -> torch.Tensor | None:
+    """(B, K, 3) pegs (x, y, radius) [m], rows of radius 0 empty (the env's padded ``pegs``) -> (B, S, S) their
+    coverage as the env draws them (``diffdlo.image.discs``); None stays None. ``batch``: the pictures' count, which
+    the pegs must match (a PerceptionError names a mismatch)."""
+    if pegs is None:
+        return None
+    pegs = torch.as_tensor(pegs)
+    if pegs.ndim != 3 or pegs.shape[-1] != 3 or (batch is not None and pegs.shape[0] != batch):
+        raise PerceptionError(f"pegs must be ({batch if batch is not None else 'B'}, K, 3) of (x, y, radius) [m], one "
+                              f"board per picture, got {tuple(pegs.shape)}")
+    if not bool(torch.isfinite(pegs).all()) or bool((pegs[..., 2] < 0).any()):
+        raise PerceptionError("pegs must be finite with radius >= 0 (0: an empty row), got "
+                              f"{pegs.detach().cpu().tolist()}")
+    return rimage.discs(pegs.to(torch.float32), size, view_size)
+
+
+def render_uint8(points: torch.Tensor, size: int, view_size: float, rope: bool = True,
+                 pegs: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, N, 2) curves -> the env's (B, S, S, 3) uint8 pictures of them with the end marker; ``pegs`` (B, K, 3): a
+    route's board drawn under them (None: none)."""
+    board = board_coverage(pegs, size, view_size, len(points))
+    return draw(points.detach(), size, view_size, rope,
+                None if board is None else board.to(points.device)).round().clamp(0, 255).to(torch.uint8)
+
+
+def unpeg(images: torch.Tensor, pegs: torch.Tensor, view_size: float, rope: bool = True,
+          end_ridge: float = 100.0) -> torch.Tensor:
+    """The env's pictures of a curve over a route's known pegs (B, S, S, 3) uint8 -> the same pictures with the pegs
+    taken out, as if drawn without them (uint8): what a network trained on peg-free pictures reads.
+
+    The env blends its layers over the table: the pegs' coverage a (known from ``pegs`` (B, K, 3)), then the line,
+    then the end marker, so a pixel is B' u + L v + E w with B' = table (1 - a) + grey a, u + v + w = 1, and L, E
+    the line's and the marker's colours (the rope's or, ``rope`` False, the target's). Where a > 0 the (v, w) that
+    best explain the pixel's three channels are solved for (least squares; ``end_ridge`` [(0-255 units)^2] holds w
+    at 0 where the pixel does not ask for the marker: the target's blue and amber and the grey are nearly collinear)
+    and the pixel is redrawn as table u + L v + E w. Exact but for the pictures' rounding; other pixels unchanged."""
+    board = board_coverage(pegs, images.shape[1], view_size, len(images)).to(images.device)        # (B, S, S)
+    line = rimage.ROPE_COLOR if rope else rimage.TARGET_COLOR
+    dot = rimage.ROPE_END_COLOR if rope else rimage.TARGET_END_COLOR
+    kw = dict(dtype=torch.float32, device=images.device)
+    table, grey, lc, ec = (torch.tensor(c, **kw) for c in (rimage.BACKGROUND, rimage.PEG_COLOR, line, dot))
+    a = board.unsqueeze(-1)
+    under = table * (1 - a) + grey * a                                        # (B, S, S, 3) what lies under the line
+    img = images.to(torch.float32)
+    d_line, d_dot, r = lc - under, ec - under, img - under
+    m11, m12 = (d_line * d_line).sum(-1), (d_line * d_dot).sum(-1)
+    m22 = (d_dot * d_dot).sum(-1) + end_ridge
+    b1, b2 = (d_line * r).sum(-1), (d_dot * r).sum(-1)
+    det = (m11 * m22 - m12 * m12).clamp_min(1e-6)
+    v = ((m22 * b1 - m12 * b2) / det).clamp(0.0, 1.0)
+    w = ((m11 * b2 - m12 * b1) / det).clamp(0.0, 1.0)
+    w = torch.minimum(w, 1 - v)
+    clean = table * (1 - v - w).unsqueeze(-1) + lc * v.unsqueeze(-1) + ec * w.unsqueeze(-1)
+    out = torch.where(board.unsqueeze(-1) > 0, clean, img)
+    return out.round().clamp(0, 255).to(torch.uint8)
 
 
 # ====================================================================== training shapes
@@ -134,14 +192,18 @@ class PerceptionNet(nn.Module):
 
 # ====================================================================== analysis by synthesis
 def refine(points: torch.Tensor, images: torch.Tensor, rest_length: float, view_size: float, rope: bool = True,
-           iters: int = 60, lr_px: float = 0.5, length_weight: float = 0.1) -> torch.Tensor:
+           iters: int = 60, lr_px: float = 0.5, length_weight: float = 0.1,
+           pegs: torch.Tensor | None = None) -> torch.Tensor:
     """Move the nodes ``points`` (B, N, 2) so that the env's renderer draws them onto ``images`` (B, S, S, 3) uint8:
     Adam on the mean squared pixel difference plus ``length_weight`` x the links' squared relative stretch (the
     settled rope is at its rest length to a fraction of a millimetre), steps of ``lr_px`` pixels decaying to 0.
-    Returns the refined points (no gradient)."""
+    ``pegs`` (B, K, 3): the route's board the pictures show (known fixtures): the synthesized pictures draw it too,
+    under the curve, so that like is compared with like. Returns the refined points (no gradient)."""
     if iters <= 0:
         return points.detach()
     size = images.shape[1]
+    board = board_coverage(pegs, size, view_size, len(images))
+    board = None if board is None else board.to(images.device)
     px = view_size / size
     target = images.to(torch.float32)
     x = points.detach().to(torch.float32).clone().requires_grad_(True)
@@ -149,7 +211,7 @@ def refine(points: torch.Tensor, images: torch.Tensor, rest_length: float, view_
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 1.0 - i / iters)
     for _ in range(iters):
         with torch.enable_grad():
-            img = draw(x, size, view_size, rope)
+            img = draw(x, size, view_size, rope, board)
             pix = ((img - target) / 255.0).pow(2).flatten(1).sum(1)
             link = ((x[:, 1:] - x[:, :-1]).pow(2).sum(-1) + 1e-12).sqrt()     # finite gradient at length 0
             stretch = (link / rest_length - 1).pow(2).sum(1)
@@ -205,21 +267,34 @@ class Perception:
                                   f"{tuple(images.shape)} {images.dtype}")
 
     @torch.no_grad()
-    def read(self, images: torch.Tensor, rope: bool = True) -> torch.Tensor:
+    def read(self, images: torch.Tensor, rope: bool = True, pegs: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, S, S, 3) uint8 pictures -> (B, N, 2) float32 positions. ``pegs`` (B, K, 3) (x, y, radius) [m], rows
+        of radius 0 empty: the route's board the pictures show (known fixtures): the network reads the pictures with
+        the pegs taken out (``unpeg``) and the refinement draws them (docs/PERCEPTION.md, "Among pegs")."""
         self.check_pictures(images)
         images = images.to(self.net.coords.device)
-        points = self.net(images)
+        if pegs is not None:                 # the network reads the picture with the known pegs taken out
+            pegs = torch.as_tensor(pegs).to(images.device)
+            points = self.net(unpeg(images, pegs, self.view_size, rope))          # (a bad board is named there)
+        else:
+            points = self.net(images)
         if self.refine_iters > 0:
-            points = refine(points, images, self.rest_length, self.view_size, rope, iters=self.refine_iters)
+            points = refine(points, images, self.rest_length, self.view_size, rope, iters=self.refine_iters,
+                            pegs=pegs)
         return points.to(torch.float32)
 
-    def perceive(self, obs: dict[str, torch.Tensor], target: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def perceive(self, obs: dict[str, torch.Tensor], target: torch.Tensor | None = None,
+                 pegs: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """{image, target_image} -> {node_poses, target_poses}; ``target``: the target's positions when already
-        perceived (the env reads a target once per episode)."""
-        nodes = self.read(obs["image"], rope=True)
+        perceived (the env reads a target once per episode). ``pegs`` (B, K, 3): a route's board, known, drawn in
+        both pictures: the reading takes it into account and the observation carries it as is ("pegs")."""
+        nodes = self.read(obs["image"], rope=True, pegs=pegs)
         if target is None:
-            target = self.read(obs["target_image"], rope=False)
-        return {"node_poses": nodes, "target_poses": target.to(nodes, copy=True)}
+            target = self.read(obs["target_image"], rope=False, pegs=pegs)
+        out = {"node_poses": nodes, "target_poses": target.to(nodes, copy=True)}
+        if pegs is not None:
+            out["pegs"] = torch.as_tensor(pegs).detach().to(nodes, copy=True)
+        return out
 
     # ----------------------------------------------------------------- checkpoint: tensors and plain values only
     def save(self, path: Path | str) -> None:
@@ -276,23 +351,49 @@ class TrainConfig:
     eval_pictures: int = 256      # held-out rope and target pictures (seed + 1)
     eval_every: int = 1000
     seed: int = 0
+    pegs_share: float = 0.0       # share of each batch drawn from ropes on random boards, their pegs drawn (routes)
+    board_pool: int = 2048        # ropes on random boards drawn once when pegs_share > 0 (diffdlo.perception.boards)
+    init: str = ""                # fine-tune: start from this checkpoint's weights ("": from scratch)
 
 
 def augmented_batch(pool: torch.Tensor, cfg: TrainConfig, generator: torch.Generator,
-                    view_size: float) -> tuple[torch.Tensor, torch.Tensor]:
+                    view_size: float, boards: tuple[torch.Tensor, torch.Tensor] | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """A batch of pictures (B, S, S, 3) uint8 and their labels (B, N, 2) float32: pool shapes turned uniformly,
-    placed uniformly, drawn in the rope's or the target's palette with equal odds."""
+    placed uniformly, drawn in the rope's or the target's palette with equal odds. ``boards`` (ropes (M, N, 2), pegs
+    (M, K, 3)), with cfg.pegs_share > 0: each picture is, with odds pegs_share, one of those ropes drawn over its
+    pegs, turned and placed with them."""
     b = cfg.batch
     x = pool[torch.randint(0, len(pool), (b,), generator=generator)]
+    pegs = None
+    if boards is not None and cfg.pegs_share > 0:          # no draw otherwise: the peg-free training is unchanged
+        on_board = torch.rand(b, generator=generator) < cfg.pegs_share
+        pick = torch.randint(0, len(boards[0]), (b,), generator=generator)
+        x = torch.where(on_board[:, None, None], boards[0][pick], x)
+        pegs = torch.where(on_board[:, None, None], boards[1][pick], torch.zeros_like(boards[1][pick]))
     theta = torch.rand(b, generator=generator, dtype=torch.float64) * 2 * math.pi
     c, s = theta.cos(), theta.sin()
     rot = torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
     shift = (torch.rand(b, 1, 2, generator=generator, dtype=torch.float64) * 2 - 1) * cfg.spread
-    x = ((x - x.mean(1, keepdim=True)) @ rot.transpose(1, 2) + shift).float()
+    centre = x.mean(1, keepdim=True)
+    x = ((x - centre) @ rot.transpose(1, 2) + shift).float()
+    if pegs is not None:                                   # the board turns and moves with its rope
+        xy = (pegs[..., :2] - centre) @ rot.transpose(1, 2) + shift
+        pegs = torch.cat([xy, pegs[..., 2:]], -1).float()
     rope = torch.rand(b, generator=generator) < 0.5
-    images = torch.where(rope[:, None, None, None], render_uint8(x, cfg.image_size, view_size, True),
-                         render_uint8(x, cfg.image_size, view_size, False))
+    images = torch.where(rope[:, None, None, None], render_uint8(x, cfg.image_size, view_size, True, pegs),
+                         render_uint8(x, cfg.image_size, view_size, False, pegs))
     return images, x
+
+
+def board_pool(n: int, p: CableParams, generator: torch.Generator, sim) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` ropes on random boards, a quarter of each kind of ``boards.BOARD_KINDS`` (the last kind takes the rest),
+    and their pegs: (n, N, 2), (n, K, 3) float64."""
+    from .boards import BOARD_KINDS, board_shapes
+    q = n // len(BOARD_KINDS)
+    parts = [board_shapes(q if i < len(BOARD_KINDS) - 1 else n - q * (len(BOARD_KINDS) - 1), p, generator, sim, kind)
+             for i, kind in enumerate(BOARD_KINDS)]
+    return torch.cat([r for r, _, _ in parts]), torch.cat([pg for _, pg, _ in parts])
 
 
 def held_out(p: CableParams, cfg: TrainConfig, sim, view_size: float) -> dict[str, torch.Tensor]:
@@ -305,8 +406,14 @@ def held_out(p: CableParams, cfg: TrainConfig, sim, view_size: float) -> dict[st
     ropes = torch.cat([sample_shapes(4 * q, p, g, sim, spread=cfg.spread)[:q] for _ in range(4)]).float()
     targets = sample_shapes(4 * n, p, g, None, spread=0.0)[q:3 * q].float()      # the lines and the curves
     targets = torch.cat([targets, targets.flip(1)])[:n]
-    return {"ropes": ropes, "rope_images": render_uint8(ropes, cfg.image_size, view_size, True),
+    test = {"ropes": ropes, "rope_images": render_uint8(ropes, cfg.image_size, view_size, True),
             "targets": targets, "target_images": render_uint8(targets, cfg.image_size, view_size, False)}
+    if cfg.pegs_share > 0:          # and ropes among pegs (drawn after the others: those stay the same)
+        board_ropes, pegs = board_pool(n, p, g, sim)
+        board_ropes, pegs = board_ropes.float(), pegs.float()
+        test.update(peg_ropes=board_ropes, peg_pegs=pegs,
+                    peg_rope_images=render_uint8(board_ropes, cfg.image_size, view_size, True, pegs))
+    return test
 
 
 def node_error(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
@@ -316,8 +423,11 @@ def node_error(pred: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
 
 def evaluate(perception: Perception, test: dict[str, torch.Tensor], chunk: int = 64) -> dict[str, float]:
     out: dict[str, float] = {}
-    for key, images, truth, rope in (("node", test["rope_images"], test["ropes"], True),
-                                     ("target", test["target_images"], test["targets"], False)):
+    sets = [("node", test["rope_images"], test["ropes"], True, None),
+            ("target", test["target_images"], test["targets"], False, None)]
+    if "peg_rope_images" in test:           # ropes among pegs (training with pegs_share > 0)
+        sets.append(("peg_node", test["peg_rope_images"], test["peg_ropes"], True, test["peg_pegs"]))
+    for key, images, truth, rope, pegs in sets:
         net, fine = [], []
         for i in range(0, len(images), chunk):
             with torch.no_grad():
@@ -325,7 +435,7 @@ def evaluate(perception: Perception, test: dict[str, torch.Tensor], chunk: int =
             net.append(node_error(guess, truth[i:i + chunk]))
             if perception.refine_iters > 0:
                 done = refine(guess, images[i:i + chunk], perception.rest_length, perception.view_size, rope,
-                              iters=perception.refine_iters)
+                              iters=perception.refine_iters, pegs=None if pegs is None else pegs[i:i + chunk])
                 fine.append(node_error(done, truth[i:i + chunk]))
         e_net = torch.cat(net)
         e = torch.cat(fine) if fine else e_net
@@ -349,14 +459,23 @@ def train(out: Path, cfg: TrainConfig, p: CableParams, view_size: float = DEFAUL
     sim = Simulator(p)
     g = torch.Generator().manual_seed(cfg.seed)
     pool = sample_shapes(cfg.pool, p, g, sim, spread=0.0)
+    boards = board_pool(cfg.board_pool, p, g, sim) if cfg.pegs_share > 0 else None
     test = held_out(p, cfg, sim, view_size)
     net = PerceptionNet(cfg.image_size, p.n_nodes, view_size, cfg.width, cfg.hidden)
+    if cfg.init:                                           # fine-tune: the weights of an earlier checkpoint
+        start = Perception.load(cfg.init, image_size=cfg.image_size, n_nodes=p.n_nodes, view_size=view_size)
+        if (start.net.width, start.net.hidden) != (cfg.width, cfg.hidden):
+            raise PerceptionError(f"--init {cfg.init!r} has width={start.net.width}, hidden={start.net.hidden}; "
+                                  f"training asks for width={cfg.width}, hidden={cfg.hidden}")
+        net.load_state_dict(start.net.state_dict())
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda i: 0.5 * (1 + math.cos(math.pi * min(i / cfg.steps, 1))))
     state_path, log_path = out / "train_state.pt", out / "log.csv"
-    step, wall_before, log = 0, 0.0, ["step,wall_s,train_error_mm,net_node_error_mm,net_target_error_mm"]
+    step, wall_before, log = 0, 0.0, ["step,wall_s,train_error_mm,net_node_error_mm,net_target_error_mm"
+                                       + (",net_peg_node_error_mm" if boards is not None else "")]
     if resume and state_path.is_file():
         st = torch.load(state_path, map_location="cpu", weights_only=True)
+        st["config"] = {**dataclasses.asdict(TrainConfig()), **st["config"]}   # a state saved before a field existed
         same = ("refine_iters",)          # read after training only: a finished run can be re-read with other steps
         if {k: v for k, v in st["config"].items() if k not in same} != \
                 {k: v for k, v in dataclasses.asdict(cfg).items() if k not in same}:
@@ -369,7 +488,7 @@ def train(out: Path, cfg: TrainConfig, p: CableParams, view_size: float = DEFAUL
     running = None
     while step < cfg.steps:
         net.train()
-        images, labels = augmented_batch(pool, cfg, g, view_size)
+        images, labels = augmented_batch(pool, cfg, g, view_size, boards)
         loss = node_error(net(images), labels).mean()
         opt.zero_grad()
         loss.backward()
@@ -383,7 +502,8 @@ def train(out: Path, cfg: TrainConfig, p: CableParams, view_size: float = DEFAUL
             e = evaluate(perception, test)
             wall = wall_before + time.perf_counter() - t0
             log.append(f"{step},{wall:.1f},{1000 * running:.3f},{e['net_node_error_mm']:.3f},"
-                       f"{e['net_target_error_mm']:.3f}")
+                       f"{e['net_target_error_mm']:.3f}" + (f",{e['net_peg_node_error_mm']:.3f}" if boards is not None
+                                                             else ""))
             bar.set_postfix(node_mm=f"{e['net_node_error_mm']:.1f}")
             write_text_atomic(log_path, "\n".join(log) + "\n")
             from ..utils.files import replacing
@@ -395,7 +515,10 @@ def train(out: Path, cfg: TrainConfig, p: CableParams, view_size: float = DEFAUL
     bar.close()
     net.eval()
     train_wall = wall_before + time.perf_counter() - t0
-    perception = Perception(net, p.rest_length, cfg.refine_iters, meta={"train_images": cfg.steps * cfg.batch})
+    meta = {"train_images": cfg.steps * cfg.batch}
+    if cfg.pegs_share > 0 or cfg.init:
+        meta.update(pegs_share=cfg.pegs_share, init=cfg.init)
+    perception = Perception(net, p.rest_length, cfg.refine_iters, meta=meta)
     t1 = time.perf_counter()
     e = evaluate(perception, test)
     read_s = (time.perf_counter() - t1) / (2 * len(test["ropes"]))
@@ -452,13 +575,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = ap.parse_args(argv)
     cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
-    for name in ("steps", "batch", "pool", "width", "hidden", "eval_pictures", "eval_every"):
+    for name in ("steps", "batch", "pool", "width", "hidden", "eval_pictures", "eval_every", "board_pool"):
         if getattr(cfg, name) < (4 if name in ("pool", "eval_pictures") else 1):
             ap.error(f"--{name.replace('_', '-')} must be positive (pool, eval-pictures >= 4), got {getattr(cfg, name)}")
     if cfg.refine_iters < 0 or args.threads is not None and args.threads < 1:
         ap.error(f"--refine-iters must be >= 0 and --threads >= 1, got {cfg.refine_iters}, {args.threads}")
     if not (cfg.lr > 0 and math.isfinite(cfg.lr)) or not (0 <= cfg.spread < args.view_size / 2):
         ap.error(f"--lr must be > 0 and --spread in [0, view_size/2), got {cfg.lr}, {cfg.spread}")
+    if not 0 <= cfg.pegs_share <= 1:
+        ap.error(f"--pegs-share must be in [0, 1] (the share of pictures drawn among pegs), got {cfg.pegs_share}")
     try:
         PerceptionNet(cfg.image_size, 2, args.view_size)
     except PerceptionError as exc:
@@ -470,6 +595,11 @@ def main(argv: list[str] | None = None) -> int:
             check_fresh_out(out, args.overwrite, "an earlier perception")
         elif not (out / "train_state.pt").is_file():
             raise ValueError(f"--resume: {out / 'train_state.pt'} not found (nothing to continue in {str(out)!r})")
+        if cfg.init:                 # a fine-tune's start, checked before any work: named if missing or foreign
+            try:
+                Perception.load(cfg.init, image_size=cfg.image_size, n_nodes=p.n_nodes, view_size=args.view_size)
+            except PerceptionError as exc:
+                raise ValueError(f"--init: {exc}") from None
     except (ParamsError, FileExistsError, ValueError) as exc:
         ap.error(str(exc))
     if args.threads:
