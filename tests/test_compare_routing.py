@@ -116,3 +116,13 @@ def test_a_route_gallery_draws_the_pegs_and_measures_the_error_on_the_board():
     assert sorted(round(p.radius, 3) for p in ax.patches) == [0.01, 0.02]
     assert any(t.get_text() == "4.0 / 4.0 mm" for t in ax.texts)
     plt.close(fig)
+
+
+def test_a_miss_is_told_apart_by_why():
+    from benchmarks.compare.routing import STALL_MOVES, miss_reason
+    assert miss_reason({"success": True}) is None
+    assert miss_reason({"success": False, "sides_kept": False, "errors": [0.3, 0.2]}) == "wrong side"
+    flat = [0.3, 0.05] + [0.0495] * STALL_MOVES              # under 1 mm gained over the last moves
+    assert miss_reason({"success": False, "sides_kept": True, "errors": flat}) == "stalled"
+    falling = [0.3 - 0.01 * k for k in range(STALL_MOVES + 2)]
+    assert miss_reason({"success": False, "sides_kept": True, "errors": falling}) == "improving"

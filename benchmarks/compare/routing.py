@@ -17,7 +17,7 @@ from .stats import fmt_ci, t_interval, wilson
 from .summary import _episodes, pairs, paired_differences, paired_texts
 
 HEAD = ["method", "variant", "task", "seeds × episodes", "success @1 cm, every peg on its side", "moves (solved)",
-        "under 1 cm, a peg on the wrong side", "final error [cm]", "sim moves / episode", "s / move",
+        "under 1 cm, a peg on the wrong side", "misses: wrong side / stalled / improving", "final error [cm]", "sim moves / episode", "s / move",
         "pin: Δ success [pp]", "pin: Δ moves (both solved)", "pairs"]
 
 
@@ -47,6 +47,24 @@ def wrong_side(e: dict[str, Any]) -> bool:
     return e.get("sides_kept") is False and e["final_error"] < 0.01
 
 
+STALL_MOVES = 10          # a miss that gained under STALL_GAIN over its last STALL_MOVES moves had stalled
+STALL_GAIN = 0.001        # m
+
+
+def miss_reason(e: dict[str, Any]) -> str | None:
+    """Why an episode missed (None where it succeeded): "wrong side" (it ended with a peg on the wrong side),
+    "stalled" (every peg on its side, but its last STALL_MOVES moves brought its best error on the board down by less
+    than STALL_GAIN: a local minimum) or "improving" (still getting nearer when its moves ran out)."""
+    if e["success"]:
+        return None
+    if e.get("sides_kept") is False:
+        return "wrong side"
+    errors = e.get("errors") or []
+    if len(errors) > STALL_MOVES and min(errors[-STALL_MOVES:]) > min(errors[:-STALL_MOVES]) - STALL_GAIN:
+        return "stalled"
+    return "improving"
+
+
 def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str, Any]]:
     """Per routing task and row with finished cells: its statistics and, for a pin row, the paired differences
     against its partner without the pin."""
@@ -69,6 +87,8 @@ def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str
                    "moves": float(np.mean([e["steps"] for e in flat if e["success"]])) if any(
                        e["success"] for e in flat) else float("nan"),
                    "wrong_side": sum(wrong_side(e) for e in flat),
+                   "misses": {why: sum(miss_reason(e) == why for e in flat)
+                              for why in ("wrong side", "stalled", "improving")},
                    "final_error": t_interval([np.mean([e["final_error"] for e in s]) for s in per_seed],
                                              (0.0, float("inf"))),
                    "sim_evals": float(np.mean([r["sim_evals"] / len(r["episodes"]) for r in runs])),
@@ -98,7 +118,10 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
              "where the route lies) under 1 cm AND every peg passed on the route's side (the winding test); "
              "t-interval over seeds, then Wilson over the pooled episodes. **Under 1 cm, a peg on the wrong side**: "
              "episodes that ended on the route but round a peg the wrong way (the distance alone would have called "
-             "them solved). **pin**: the row with the second gripper minus the same row without it, on the same "
+             "them solved). **Misses**: the failed episodes by why: ended with a peg on the wrong side; every peg "
+             f"on its side but stalled (its last {STALL_MOVES} moves brought its best error down by under "
+             f"{STALL_GAIN * 1e3:.0f} mm: a local minimum); still improving when its moves ran out. **pin**: the row "
+             "with the second gripper minus the same row without it, on the same "
              "episodes (paired as the other sections: same seed and episode index, checked from the start error and "
              "target); Δ moves over the episodes both solved, 95 % paired t-interval.", "",
              "| " + " | ".join(HEAD) + " |", "|" + "---|" * len(HEAD)]
@@ -110,7 +133,8 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
             r["method"], r["variant"], r["task"],
             f"{r['seeds']} × {r['episodes'] // max(r['seeds'], 1)}",
             f"{fmt_ci(*r['success'])}; {fmt_ci(*r['success_wilson'])}", moves,
-            f"{r['wrong_side']} of {r['episodes']}", fmt_ci(*r["final_error"], scale=100.0),
+            f"{r['wrong_side']} of {r['episodes']}", " / ".join(str(n) for n in r["misses"].values()),
+            fmt_ci(*r["final_error"], scale=100.0),
             f"{r['sim_evals']:.0f}", f"{r['s_per_move']:.2f}", *pin]) + " |")
     lines.append("")
     lines += [f"![{name.rsplit('.', 1)[0].rsplit('/', 1)[-1]}]({name})" for name in galleries or []]
