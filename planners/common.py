@@ -19,6 +19,7 @@ move (n_nodes, length, action_scale, max_disp equal). ``build_run`` builds the p
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -178,6 +179,10 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
     parser.add_argument("--device", default="cpu", help="simulator device (default cpu)")
     parser.add_argument("--params", default="cable",
                         help="the model's params: a name or YAML path (default cable); the planner plans with them")
+    parser.add_argument("--model-contact-width", type=float, default=None, metavar="W",
+                        help="the model's contact width [m] (its penalty's smoothing among pegs: a wider one smooths "
+                             "the planner's cost across the onset of contact); the env's rope keeps --params' (or "
+                             "--real-params') own (default: the model's params' contact width)")
     parser.add_argument("--real-params", default=None,
                         help="the real rope's params (name or YAML path) that the env moves and scores (default "
                              "--params); n_nodes, length, action_scale and max_disp must equal the model's")
@@ -235,15 +240,22 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     except ValueError as exc:
         parser.error(str(exc))
     try:
-        p = load_params(args.params)
+        base = load_params(args.params)
     except (ParamsError, OSError, ValueError) as exc:
         parser.error(f"bad --params {args.params!r}: {exc}")
+    p = base
+    if args.model_contact_width is not None:
+        try:
+            check_interval("--model-contact-width", args.model_contact_width, "(0, inf)")
+            p = dataclasses.replace(base, contact_width=float(args.model_contact_width))
+        except (ParamsError, ValueError) as exc:
+            parser.error(str(exc))
     try:
         factors = parse_scales(args.real_scale)
     except ValueError as exc:
         return refuse(str(exc))
     try:
-        real = scaled_params(load_params(args.real_params) if args.real_params is not None else p, factors,
+        real = scaled_params(load_params(args.real_params) if args.real_params is not None else base, factors,
                              "--real-scale")
         check_same_moves(p, real)
     except (ParamsError, OSError, ValueError) as exc:

@@ -129,3 +129,27 @@ def test_the_routing_study_refuses_a_target_that_is_no_route(capsys):
         with pytest.raises(SystemExit):
             study.main(["--out", "unused", "--targets", target])
         assert f"--targets {target!r}" in capsys.readouterr().err
+
+
+def test_the_models_contact_width_smooths_the_planner_not_the_env(tmp_path, monkeypatch, capsys):
+    import pytest
+
+    from planners import common
+    built = {}
+    real_build = common.build_run
+
+    def spy(planner_cls, model, real, *a, **k):
+        built["model"], built["real"] = model, real
+        return real_build(planner_cls, model, real, *a, **k)
+    monkeypatch.setattr(common, "build_run", spy)
+    out = tmp_path / "greedy"
+    assert greedy_mod.main(["--target", "route:u_two_pegs", "--max-steps", "1", "--model-contact-width", "0.005",
+                            "--out", str(out), "--quiet", "--no-gif"]) == 0
+    default = route_env(1).params.contact_width
+    assert built["model"].contact_width == 0.005 and built["real"].contact_width == default != 0.005
+    assert json.loads((out / "results.json").read_text())["config"]["model_contact_width"] == 0.005
+    for bad in ("0", "-0.001", "nan"):
+        with pytest.raises(SystemExit):
+            greedy_mod.main(["--target", "route:u_two_pegs", "--model-contact-width", bad, "--out",
+                             str(tmp_path / "bad"), "--quiet", "--no-gif"])
+        assert f"--model-contact-width must be in (0, inf), got {float(bad)!r}" in capsys.readouterr().err
