@@ -89,10 +89,12 @@ def summary(e: torch.Tensor) -> dict[str, float]:
     return {"mean_mm": 1000 * float(e.mean()), "p95_mm": 1000 * float(e.quantile(0.95)), "n": len(e)}
 
 
-def measure(path: str, sets, old, iters: int) -> dict:
+def measure(path: str, sets, old, iters: int) -> tuple[dict, dict[str, torch.Tensor]]:
+    """The checkpoint's summaries, and its per-picture errors of the readings the env makes now (for pairing)."""
     perception = Perception.load(path, image_size=64, view_size=1.0)
     t0 = time.perf_counter()
     res: dict = {"checkpoint": path, "kinds": {}}
+    per_picture: dict[str, torch.Tensor] = {}
     pooled: dict[str, dict[str, list]] = {"with_pegs": {r: [] for r in READINGS}, "no_pegs": {r: [] for r in READINGS}}
     for kind, s in sets.items():
         res["kinds"][kind] = {}
@@ -100,6 +102,8 @@ def measure(path: str, sets, old, iters: int) -> dict:
             e = errors(perception, s[drawn], s["truth"], s["rope"], s["pegs"] if drawn == "with_pegs" else None,
                        iters)
             res["kinds"][kind][drawn] = {r: summary(v) for r, v in e.items()}
+            if drawn == "with_pegs":
+                per_picture[kind] = e["refined_unpegged"]
             if kind in BOARD_KINDS:
                 for r, v in e.items():
                     pooled[drawn][r].append(v)
@@ -109,8 +113,23 @@ def measure(path: str, sets, old, iters: int) -> dict:
                                      ("targets", old["target_images"], old["targets"], False)):
         e = errors(perception, images, truth, rope, None, iters)
         res["old_held_out"][key] = {r: summary(v) for r, v in e.items()}
+        per_picture[f"old held-out {key}"] = e["refined_blind"]
+    per_picture["all ropes among pegs"] = torch.cat([per_picture[k] for k in BOARD_KINDS])
     res["wall_s"] = time.perf_counter() - t0
-    return res
+    return res, per_picture
+
+
+def paired(first: dict[str, torch.Tensor], other: dict[str, torch.Tensor], resamples: int = 4000) -> dict[str, dict]:
+    """Per set: the mean of (other - first) per-picture errors [mm] on the same pictures, with a 95 % bootstrap
+    interval (``resamples`` resamplings of the pictures, generator seed 0)."""
+    out = {}
+    for key, a in first.items():
+        d = other[key] - a
+        idx = torch.randint(0, len(d), (resamples, len(d)), generator=torch.Generator().manual_seed(0))
+        means = d[idx].mean(1)
+        out[key] = {"mean_mm": 1000 * float(d.mean()), "low_mm": 1000 * float(means.quantile(0.025)),
+                    "high_mm": 1000 * float(means.quantile(0.975)), "n": len(d)}
+    return out
 
 
 def fmt(s: dict | None) -> str:
@@ -165,15 +184,25 @@ def main(argv: list[str] | None = None) -> int:
     sets = picture_sets(args.pictures, args.seed, p, sim, 64, 1.0)
     old = held_out(p, TrainConfig(image_size=64, eval_pictures=256, seed=0), sim, 1.0)
     try:
-        results = [measure(path, sets, old, args.refine) for path in args.perception]
+        measured = [measure(path, sets, old, args.refine) for path in args.perception]
     except PerceptionError as exc:
         ap.error(f"--perception: {exc}")
+    results = [r for r, _ in measured]
     text = table(results, args.refine)
+    pairs = {}
+    for path, (_, errs) in zip(args.perception[1:], measured[1:]):
+        pairs[path] = paired(measured[0][1], errs)
+        text += (f"\n\n{Path(path).name} against {Path(args.perception[0]).name}, the same pictures (the env's reading: "
+                 f"unpeg, then {args.refine} steps drawing the pegs; without pegs: {args.refine} steps): mean difference "
+                 "of the per-picture error [mm], 95 % bootstrap interval\n\n| pictures | difference [mm] |\n|---|---|\n")
+        text += "\n".join(f"| {k} | {v['mean_mm']:+.2f} [{v['low_mm']:+.2f}, {v['high_mm']:+.2f}] |"
+                           for k, v in pairs[path].items())
     print(text)
     if out is not None:
         from diffdlo.utils.files import write_json_atomic
         out.parent.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(out, {"results": results, "table": text, "pictures": args.pictures, "seed": args.seed,
+        write_json_atomic(out, {"results": results, "paired": pairs, "table": text, "pictures": args.pictures,
+                                "seed": args.seed,
                                 "refine": args.refine, "threads": args.threads, "wall_s": time.perf_counter() - t0,
                                 "command": "python -m benchmarks.studies.perception_pegs " + " ".join(
                                     sys.argv[1:] if argv is None else argv)})

@@ -15,7 +15,11 @@ Two stages (chosen by measurement, docs/PERCEPTION.md):
 ``Perception`` holds both and maps an image observation {image, target_image} (B, S, S, 3) uint8 to the points
 observation {node_poses, target_poses} (B, N, 2) float32, which is what the env's obs_type "perceived" returns and
 what planners and learners read. ``python -m diffdlo.perception --out DIR`` trains it and writes ``results.json``
-and ``perception.pt`` (loaded by path: ``Perception.load(path)``).
+and ``perception.pt`` (loaded by path: ``Perception.load(path)``); ``--init CHECKPOINT`` fine-tunes one, and
+``--pegs-share`` trains on ropes among a route's pegs too (diffdlo/perception/boards.py).
+
+Among a route's pegs (known: the board's fixtures), ``read(images, rope, pegs)`` gives the network the pictures with
+the pegs taken out (``unpeg``) and the refinement draws them (docs/PERCEPTION.md, "Among pegs").
 """
 from __future__ import annotations
 
