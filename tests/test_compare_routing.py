@@ -126,3 +126,17 @@ def test_a_miss_is_told_apart_by_why():
     assert miss_reason({"success": False, "sides_kept": True, "errors": flat}) == "stalled"
     falling = [0.3 - 0.01 * k for k in range(STALL_MOVES + 2)]
     assert miss_reason({"success": False, "sides_kept": True, "errors": falling}) == "improving"
+
+
+def test_the_other_planners_are_paired_against_cem_with_the_same_grippers():
+    grid = load_grid()
+    done = _done(grid)
+    for variant in ("route", "route_pin"):        # greedy: two moves more than CEM on every episode
+        for seed in (0, 1):
+            eps = [dict(e, steps=e["steps"] + 2) for e in done[("cem", variant, "route", seed)]["episodes"]]
+            done[("greedy", variant, "route", seed)] = dict(done[("cem", variant, "route", seed)], episodes=eps)
+    rows = {(r["method"], r["variant"]): r for r in routing_data(grid, done)}
+    assert "vs_cem" not in rows[("cem", "route")]
+    assert rows[("greedy", "route")]["vs_cem"]["dm"] == [2.0] * 6
+    assert rows[("greedy", "route_pin")]["vs_cem"]["dm"] == [2.0] * 8
+    assert "| greedy | route_pin | route | +0 [+0, +0] | +2.0" in "\n".join(routing_section(grid, done))

@@ -47,6 +47,7 @@ def wrong_side(e: dict[str, Any]) -> bool:
     return e.get("sides_kept") is False and e["final_error"] < 0.01
 
 
+REFERENCE = "cem"          # the method the other routing rows are paired against (its row of the same variant)
 STALL_MOVES = 10          # a miss that gained under STALL_GAIN over its last STALL_MOVES moves had stalled
 STALL_GAIN = 0.001        # m
 
@@ -94,15 +95,23 @@ def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str
                    "sim_evals": float(np.mean([r["sim_evals"] / len(r["episodes"]) for r in runs])),
                    "s_per_move": float(np.mean([r["plan_s_per_step"] for r in runs])),
                    "partner": pin_partner(grid, method, variant)}
-            if row["partner"]:
-                base = _episodes(grid, done, method, row["partner"], task, task)
-                pr, unverified, mismatched = pairs(eps, base)
+            against = {"pin": (method, row["partner"]) if row["partner"] else None,
+                       "vs_cem": (REFERENCE, variant) if method != REFERENCE and variant in
+                       grid["methods"].get(REFERENCE, {}).get("variants", {}) else None}
+            for name, other in against.items():
+                if other is None:
+                    continue
+                pr, unverified, mismatched = pairs(eps, _episodes(grid, done, *other, task, task))
                 if pr:
                     ds, dm = paired_differences(pr)
-                    row["pin"] = {"ds": ds, "dm": dm, "pairs": len(pr), "unverified": unverified,
-                                  "mismatched": mismatched}
+                    row[name] = {"ds": ds, "dm": dm, "pairs": len(pr), "unverified": unverified,
+                                 "mismatched": mismatched}
             out.append(row)
     return out
+
+
+def _paired(p: dict[str, Any]) -> list[str]:
+    return paired_texts(p["ds"], p["dm"], p["pairs"], p["unverified"], p["mismatched"])
 
 
 def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: list[str] | None = None
@@ -127,8 +136,7 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
              "| " + " | ".join(HEAD) + " |", "|" + "---|" * len(HEAD)]
     for r in data:
         moves = "—" if np.isnan(r["moves"]) else f"{r['moves']:.1f}; {r['solved']}"
-        pin = (paired_texts(r["pin"]["ds"], r["pin"]["dm"], r["pin"]["pairs"], r["pin"]["unverified"],
-                            r["pin"]["mismatched"]) if "pin" in r else ["", "", ""])
+        pin = _paired(r["pin"]) if "pin" in r else ["", "", ""]
         lines.append("| " + " | ".join([
             r["method"], r["variant"], r["task"],
             f"{r['seeds']} × {r['episodes'] // max(r['seeds'], 1)}",
@@ -137,5 +145,14 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
             fmt_ci(*r["final_error"], scale=100.0),
             f"{r['sim_evals']:.0f}", f"{r['s_per_move']:.2f}", *pin]) + " |")
     lines.append("")
+    versus = [r for r in data if "vs_cem" in r]
+    if versus:
+        lines += [f"Each row against {REFERENCE.upper()} with the same gripper(s) (the `{REFERENCE}` row of the same "
+                  "variant), on the same episodes: Δ success in percentage points, Δ moves over the episodes both "
+                  "solved (positive: more moves than CEM), 95 % paired t-intervals.", "",
+                  "| method | variant | task | Δ success [pp] | Δ moves (both solved) | pairs |", "|---|---|---|---|---|---|"]
+        lines += ["| " + " | ".join([r["method"], r["variant"], r["task"], *_paired(r["vs_cem"])]) + " |"
+                  for r in versus]
+        lines.append("")
     lines += [f"![{name.rsplit('.', 1)[0].rsplit('/', 1)[-1]}]({name})" for name in galleries or []]
     return lines + ([""] if galleries else [])
