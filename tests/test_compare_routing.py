@@ -140,3 +140,10 @@ def test_the_other_planners_are_paired_against_cem_with_the_same_grippers():
     assert rows[("greedy", "route")]["vs_cem"]["dm"] == [2.0] * 6
     assert rows[("greedy", "route_pin")]["vs_cem"]["dm"] == [2.0] * 8
     assert "| greedy | route_pin | route | +0 [+0, +0] | +2.0" in "\n".join(routing_section(grid, done))
+
+
+def test_main_grid_runs_every_routing_row():
+    from pathlib import Path
+    script = (Path(__file__).parents[1] / "benchmarks/main_grid.sh").read_text()
+    line, = [x for x in script.splitlines() if "/route" in x and not x.lstrip().startswith("#")]
+    assert sorted(line.split("--rows", 1)[1].split()) == sorted(f"{m}/{v}" for m, v in ROUTE_ROWS)
