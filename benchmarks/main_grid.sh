@@ -15,8 +15,10 @@ nice -n 10 $C --methods ppo --variants fewest_moves
 # the precision rows (issue 50: the task at 5 mm mean and 2 cm at the worst node; the planners run until 2 mm), one
 # pool, cheapest first
 nice -n 10 $C --rows cem/precise gradient/precise pets/precise ppo/precise latent/precise cem/precise_image
-# the routing rows (issue 59: the planners on routes among pegs, without and with the second gripper)
-nice -n 10 $C --rows greedy/route greedy/route_pin cem/route cem/route_pin gradient/route gradient/route_pin
+# the routing rows (issue 59: the planners on routes among pegs, without and with the second gripper, and with the
+# stall escape)
+nice -n 10 $C --rows greedy/route greedy/route_pin cem/route cem/route_pin cem/route_escape cem/route_pin_escape \
+  gradient/route gradient/route_pin gradient/route_escape gradient/route_pin_escape
 # every other row in one pool, so both jobs stay busy to the last cell: the main rows first, cheapest first, then
 # the named lines (planners), the distillation (its teacher: the same seed's ppo/fewest_moves cell), the APG
 # variants and the secondary rows

@@ -104,15 +104,19 @@ def seen(points: torch.Tensor, perception, rope: bool = True, pegs: torch.Tensor
 
 
 def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", progress: bool = True,
-                perception=None) -> dict[str, Any]:
+                perception=None, escape=None) -> dict[str, Any]:
     """One episode of receding-horizon control. Returns the episode record plus its frames (T+1, N, 2). The record's
     "errors" and "worst_errors" (T+1 each): the shape error and the worst node's error [m] after the reset and after
     each move, the env's own figures.
     ``perception``: the planner is given the rope and the target as this perception reads them from the env's
     pictures (the target once per episode), not the simulator's state; "seen_error_mm" records how far off they were
-    (mean node distance, averaged over the moves)."""
+    (mean node distance, averaged over the moves).
+    ``escape`` (planners.escape.StallEscape): its greedy moves replace the planner's after a stall; "escapes" and
+    "escape_moves" record how often and how many."""
     env.reset(seed=seed)
     planner.reset(seed=seed)
+    if escape is not None:
+        escape.reset()
     state = env.get_state(generators=False)
     target, target_name = state.target[0], state.target_names[0]
     pegs = None if state.pegs is None else state.pegs[0][state.pegs[0][:, 2] > 0]       # a route's board
@@ -132,7 +136,9 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         if perception is not None:
             rope = seen(rope, perception, pegs=pegs)        # a route: read among its pegs, planned among the true ones
             seen_errors.append(float((rope - frames[-1]).norm(dim=-1).mean()))
-        action = planner.plan(rope, planned_target) if pegs is None else planner.plan(rope, planned_target, pegs)
+        action = None if escape is None else escape.plan(rope, planned_target, pegs)
+        if action is None:
+            action = planner.plan(rope, planned_target) if pegs is None else planner.plan(rope, planned_target, pegs)
         plan_s += time.perf_counter() - t0
         _, _, term, trunc, info = env.step(action.detach().reshape(1, -1).to(torch.float64))
         steps += 1
@@ -151,6 +157,8 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     if perception is not None:
         stats["seen_error_mm"] = 1000 * sum(seen_errors) / max(len(seen_errors), 1)
         stats["seen_target_error_mm"] = 1000 * float((planned_target - target).norm(dim=-1).mean())
+    if escape is not None:
+        stats["escapes"], stats["escape_moves"] = escape.escapes, escape.moves
     return {**stats, "success": success, "steps": steps, "final_error": errors[-1], "start_error": errors[0],
             "errors": errors, "worst_errors": worst_errors, "sim_evals": planner.sim_evals - evals0, "plan_s": plan_s,
             "plan_s_per_step": plan_s / max(steps, 1), "seed": seed, "target_name": target_name,
@@ -199,6 +207,10 @@ def make_parser(name: str, doc: str | None, planner_cls) -> argparse.ArgumentPar
                              "pictures (python -m diffdlo.perception), not from the simulator's state")
     parser.add_argument("--perception-refine", type=int, default=None, metavar="STEPS",
                         help="with --perception: its refinement steps per picture (default: the checkpoint's)")
+    parser.add_argument("--escape", type=int, default=0, metavar="K",
+                        help="after K moves that brought the best error down by under 1 mm, take greedy moves (the "
+                             "farthest node towards its place) until the rope is 1 mm below its best, then plan again "
+                             "(planners/escape.py; default 0: off)")
     parser.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in --out")
     parser.add_argument("--no-gif", action="store_true", help="skip the GIFs")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -232,6 +244,7 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
     try:
         check_interval("--episodes", args.episodes, "[1, inf)")
         check_interval("--max-steps", args.max_steps, "[1, inf)")
+        check_interval("--escape", args.escape, "[0, inf)")
         for flag in ("--success-tol", "--success-worst-tol"):
             value = getattr(args, flag[2:].replace("-", "_"))
             if value is not None:
@@ -281,6 +294,10 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
                                          view_size=env.view_size)
         except PerceptionError as exc:
             parser.error(f"--perception: {exc}")
+    escape = None
+    if args.escape:
+        from .escape import StallEscape
+        escape = StallEscape(planner.sim, args.escape, pin=bool(options.get("pin")))
     label = task.target_label(args.target)
     out = Path(args.out or f"runs/{name}-{label}")
     try:
@@ -292,7 +309,8 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
         with out_lock(out), stop_on_signals():              # one writer per --out; signals stop it however started
             t0 = time.perf_counter()
             episodes = [run_episode(env, planner, args.seed + i, progress=not args.quiet, perception=perception,
-                                    desc=f"{name} {label} ep {i + 1}/{args.episodes}") for i in range(args.episodes)]
+                                    escape=escape, desc=f"{name} {label} ep {i + 1}/{args.episodes}")
+                        for i in range(args.episodes)]
             mismatch = {} if real == p else {"model_params": physical_values(p), "real_params": physical_values(real)}
             write_outputs(out, name, args, label, target, episodes, time.perf_counter() - t0, extra=mismatch)
     except OutBusyError as exc:

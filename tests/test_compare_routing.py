@@ -10,10 +10,12 @@ import pytest
 from benchmarks import compare
 from benchmarks.compare.figures import _gallery, _gallery_panels, final_errors
 from benchmarks.compare.grid import env_target, load_grid, route_targets, variant_targets
-from benchmarks.compare.routing import pin_partner, routing_data, routing_rows, routing_section
+from benchmarks.compare.routing import partner, routing_data, routing_rows, routing_section
 from diffdlo import routing
 
-ROUTE_ROWS = [(m, v) for m in ("greedy", "cem", "gradient") for v in ("route", "route_pin")]
+ROUTE_ROWS = ([("greedy", v) for v in ("route", "route_pin")]
+              + [(m, v) for m in ("cem", "gradient")
+                 for v in ("route", "route_pin", "route_escape", "route_pin_escape")])
 
 
 def test_only_the_route_rows_run_the_routing_tasks_each_on_its_env_target():
@@ -30,7 +32,8 @@ def test_only_the_route_rows_run_the_routing_tasks_each_on_its_env_target():
         argv = c["argv"]
         assert argv[argv.index("--target") + 1] == env_target(grid, c["target"])
         assert argv[argv.index("--max-steps") + 1] == "40"
-        assert ("--pin" in argv) == c["variant"].endswith("_pin")
+        assert ("--pin" in argv) == ("_pin" in c["variant"])
+        assert ("--escape" in argv) == c["variant"].endswith("_escape")
     # every other row runs the free rope only, as before the routes came
     for method, spec in grid["methods"].items():
         for variant, entry in spec["variants"].items():
@@ -38,14 +41,19 @@ def test_only_the_route_rows_run_the_routing_tasks_each_on_its_env_target():
                 assert not set(variant_targets(grid, entry or {})) & set(routes), (method, variant)
 
 
-def test_a_pin_row_is_paired_with_the_row_that_differs_from_it_by_the_pin_alone():
+def test_a_pin_or_escape_row_is_paired_with_the_row_that_differs_from_it_by_that_alone():
     grid = load_grid()
     for method in ("greedy", "cem", "gradient"):
-        assert pin_partner(grid, method, "route_pin") == "route"
-        assert pin_partner(grid, method, "route") is None
+        assert partner(grid, method, "route_pin") == "route"
+        assert partner(grid, method, "route") is None
+    for method in ("cem", "gradient"):
+        assert partner(grid, method, "route_escape", "escape") == "route"
+        assert partner(grid, method, "route_pin_escape", "escape") == "route_pin"
+        assert partner(grid, method, "route_pin_escape", "pin") == "route_escape"
+        assert partner(grid, method, "route_pin", "escape") is None
     grid = copy.deepcopy(grid)
     grid["methods"]["cem"]["variants"]["route"]["args"]["candidates"] = 100      # no longer the pin alone
-    assert pin_partner(grid, "cem", "route_pin") is None
+    assert partner(grid, "cem", "route_pin") is None
 
 
 def test_a_route_task_that_is_no_target_of_the_grid_is_refused(tmp_path):
@@ -144,6 +152,23 @@ def test_the_other_planners_are_paired_against_cem_with_the_same_grippers():
 
 def test_main_grid_runs_every_routing_row():
     from pathlib import Path
-    script = (Path(__file__).parents[1] / "benchmarks/main_grid.sh").read_text()
+    script = (Path(__file__).parents[1] / "benchmarks/main_grid.sh").read_text().replace("\\\n", " ")
     line, = [x for x in script.splitlines() if "/route" in x and not x.lstrip().startswith("#")]
     assert sorted(line.split("--rows", 1)[1].split()) == sorted(f"{m}/{v}" for m, v in ROUTE_ROWS)
+
+
+def test_an_escape_row_is_paired_against_the_same_row_without_it():
+    grid = load_grid()
+    done = _done(grid)
+    for seed in (0, 1):       # cem/route_escape: the wrong-side episode 3 solved after the escape took over
+        eps = [dict(e) for e in done[("cem", "route", "route", seed)]["episodes"]]
+        eps[3] = dict(eps[3], success=True, sides_kept=True, steps=20, escape_moves=3)
+        done[("cem", "route_escape", "route", seed)] = dict(done[("cem", "route", "route", seed)], episodes=eps)
+    rows = {(r["method"], r["variant"]): r for r in routing_data(grid, done)}
+    escape = rows[("cem", "route_escape")]
+    assert escape["escapes"] == 2 and escape["escape"]["pairs"] == 8
+    assert sorted(escape["escape"]["ds"]) == [0.0] * 6 + [1.0] * 2 and escape["escape"]["dm"] == [0.0] * 6
+    assert "escape" not in rows[("cem", "route")]
+    from benchmarks.compare.records import _episode
+    assert _episode(dict(eps[3], errors=[0.3, 0.005]))["escape_moves"] == 3      # the records keep it
+    assert "| cem | route_escape | route | 2 of 8 | +25 " in "\n".join(routing_section(grid, done))

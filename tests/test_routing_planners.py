@@ -2,6 +2,7 @@
 board with the side cost, matching the env; each planner plans with and without the pin; the CLI records the board."""
 import json
 
+import pytest
 import torch
 
 from diffdlo import routing, task
@@ -153,3 +154,64 @@ def test_the_models_contact_width_smooths_the_planner_not_the_env(tmp_path, monk
             greedy_mod.main(["--target", "route:u_two_pegs", "--model-contact-width", bad, "--out",
                              str(tmp_path / "bad"), "--quiet", "--no-gif"])
         assert f"--model-contact-width must be in (0, inf), got {float(bad)!r}" in capsys.readouterr().err
+
+
+def test_the_stall_escape_takes_greedy_moves_after_a_stall_until_the_rope_beats_its_best():
+    from planners.escape import StallEscape
+    env = route_env(1)
+    state = env.get_state(generators=False)
+    target, pegs = state.target[0], state.pegs[0][state.pegs[0][:, 2] > 0]
+    escape = StallEscape(env.sim, patience=2, pin=True)
+    greedy = GreedyPlanner(env.sim, pin=1)
+
+    def rope(error):            # the target shifted sideways: every node `error` off its place on the board
+        return target + torch.tensor([0.0, error], dtype=target.dtype)
+    assert escape.plan(rope(0.10), target, pegs) is None                 # gaining: the planner plans
+    assert escape.plan(rope(0.05), target, pegs) is None
+    assert escape.plan(rope(0.0502), target, pegs) is None               # one move without gain: patience 2
+    action = escape.plan(rope(0.0498), target, pegs)                     # two moves that gained 0.2 mm: a stall
+    assert action is not None and torch.equal(action, greedy.plan(rope(0.0498), target, pegs))
+    assert escape.plan(rope(0.049), target, pegs) is not None            # still escaping: not 1 mm below 4.98 cm
+    assert escape.plan(rope(0.0485), target, pegs) is None               # 1 mm below its best: the planner again
+    assert (escape.escapes, escape.moves) == (1, 2)
+    escape.reset()
+    assert (escape.escapes, escape.moves, escape.errors) == (0, 0, [])
+    with pytest.raises(ValueError, match="--escape must be >= 1 to escape"):
+        StallEscape(env.sim, patience=0)
+
+
+def test_a_stuck_planner_is_taken_out_of_its_stall_by_the_escape_in_an_episode():
+    from planners.escape import StallEscape
+    p = route_env(1).params
+    env, planner, _ = build_run(GreedyPlanner, p, p, "route:u_two_pegs", max_steps=8, success_tol=None,
+                                device="cpu", seed=0, options={"pin": 0})
+
+    class Stuck:           # drags node 0 by nothing: the rope never moves, a stall from the first move on
+        name, sim_evals = "stuck", 0
+
+        def reset(self, seed=None):
+            pass
+
+        def plan(self, pos, target, pegs=None):
+            return task.encode_node_action(torch.tensor(0), torch.zeros(2, dtype=pos.dtype), p.n_nodes,
+                                           p.action_scale)
+    stuck = run_episode(env, Stuck(), seed=0, progress=False)
+    assert max(stuck["errors"]) - min(stuck["errors"]) < 1e-3 and "escapes" not in stuck     # under 1 mm: stalled
+    freed = run_episode(env, Stuck(), seed=0, progress=False, escape=StallEscape(env.sim, patience=3))
+    assert freed["escapes"] >= 1 and freed["escape_moves"] >= 1
+    assert freed["errors"][:4] == stuck["errors"][:4]                    # the planner's own moves until the stall
+    assert min(freed["errors"]) < stuck["errors"][0] - 0.01              # then greedy's: the rope gets nearer
+
+
+def test_the_escape_flag_is_recorded_and_a_bad_value_refused(tmp_path, capsys):
+    out = tmp_path / "greedy"
+    assert greedy_mod.main(["--target", "route:u_two_pegs", "--max-steps", "2", "--escape", "1", "--out", str(out),
+                            "--quiet", "--no-gif"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["config"]["escape"] == 1 and {"escapes", "escape_moves"} <= set(results["episodes"][0])
+    assert greedy_mod.main(["--target", "route:u_two_pegs", "--max-steps", "1", "--out", str(tmp_path / "none"),
+                            "--quiet", "--no-gif"]) == 0
+    assert "escapes" not in json.loads((tmp_path / "none" / "results.json").read_text())["episodes"][0]
+    with pytest.raises(SystemExit):
+        greedy_mod.main(["--target", "route:u_two_pegs", "--escape", "-1", "--out", str(tmp_path / "bad"), "--quiet"])
+    assert "--escape must be in [0, inf), got -1" in capsys.readouterr().err

@@ -25,7 +25,8 @@ from .settings import argv_changes, comparable_argv
 
 RESULTS_FILE = ROOT / "docs" / "results" / "cells.jsonl"
 EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name",
-                "sides_kept")     # a route's side test at the episode's end (routing cells only)
+                "sides_kept",     # a route's side test at the episode's end (routing cells only)
+                "escape_moves")   # the greedy moves of a planner's stall escape (--escape rows only)
 KEY = ("method", "variant", "target", "seed")
 
 

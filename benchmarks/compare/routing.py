@@ -2,10 +2,11 @@
 the grid (its ``routes``), each row that runs there with its success (the error on the board under 1 cm AND every
 peg on the route's side), the episodes that ended on the route but round a peg the wrong way, and the second
 gripper's effect: each ``pin`` row paired, episode by episode, against the same method's row that differs from it
-by the pin alone (its args without ``pin``).
+by the pin alone (its args without ``pin``); the stall escape's (planners/escape.py) likewise, each ``escape`` row
+against the row without it.
 
 The rows also appear in the per-task tables (one per routing task, as every task); this section is where the pin's
-pairing and the side test are read."""
+and the escape's pairings and the side test are read."""
 from __future__ import annotations
 
 from typing import Any
@@ -28,16 +29,17 @@ def routing_rows(grid: dict[str, Any]) -> list[tuple[str, str]]:
             if routes & set(variant_targets(grid, entry or {}))]
 
 
-def pin_partner(grid: dict[str, Any], method: str, variant: str) -> str | None:
-    """The variant of ``method`` that a pin row (args with a true ``pin``) is paired against: the one whose args are
-    its args without the pin (None for a row without a pin, or where there is no such variant)."""
+def partner(grid: dict[str, Any], method: str, variant: str, flag: str = "pin") -> str | None:
+    """The variant of ``method`` that a row with a true ``flag`` in its args (``pin``, ``escape``) is paired against:
+    the one whose args are its args without that flag (None for a row without it, or where there is no such
+    variant)."""
     variants = grid["methods"][method]["variants"]
     args = dict((variants[variant] or {}).get("args") or {})
-    if not args.pop("pin", 0):
+    if not args.pop(flag, 0):
         return None
     for other, entry in variants.items():
         theirs = dict((entry or {}).get("args") or {})
-        if other != variant and not theirs.get("pin") and theirs == args:
+        if other != variant and not theirs.get(flag) and theirs == args:
             return other
     return None
 
@@ -67,8 +69,8 @@ def miss_reason(e: dict[str, Any]) -> str | None:
 
 
 def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str, Any]]:
-    """Per routing task and row with finished cells: its statistics and, for a pin row, the paired differences
-    against its partner without the pin."""
+    """Per routing task and row with finished cells: its statistics and, for a pin (escape) row, the paired
+    differences against its partner without the pin (escape)."""
     out = []
     for task in route_targets(grid):
         for method, variant in routing_rows(grid):
@@ -94,8 +96,11 @@ def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str
                                              (0.0, float("inf"))),
                    "sim_evals": float(np.mean([r["sim_evals"] / len(r["episodes"]) for r in runs])),
                    "s_per_move": float(np.mean([r["plan_s_per_step"] for r in runs])),
-                   "partner": pin_partner(grid, method, variant)}
+                   "partner": partner(grid, method, variant, "pin"),
+                   "escape_partner": partner(grid, method, variant, "escape"),
+                   "escapes": sum(e.get("escape_moves", 0) > 0 for e in flat)}
             against = {"pin": (method, row["partner"]) if row["partner"] else None,
+                       "escape": (method, row["escape_partner"]) if row["escape_partner"] else None,
                        "vs_cem": (REFERENCE, variant) if method != REFERENCE and variant in
                        grid["methods"].get(REFERENCE, {}).get("variants", {}) else None}
             for name, other in against.items():
@@ -153,6 +158,18 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
                   "| method | variant | task | Δ success [pp] | Δ moves (both solved) | pairs |", "|---|---|---|---|---|---|"]
         lines += ["| " + " | ".join([r["method"], r["variant"], r["task"], *_paired(r["vs_cem"])]) + " |"
                   for r in versus]
+        lines.append("")
+    escaped = [r for r in data if "escape" in r]
+    if escaped:
+        lines += ["**The stall escape** (planners/escape.py): each row run with `--escape K` (after K moves that "
+                  "brought the rope's best error down by under 1 mm, greedy moves until it is 1 mm below its best, "
+                  "then the planner again) minus the same row without it, on the same episodes; **escaped**: the "
+                  "episodes in which it took over at least once.", "",
+                  "| method | variant | task | escaped | Δ success [pp] | Δ moves (both solved) | pairs |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += ["| " + " | ".join([r["method"], r["variant"], r["task"],
+                                     f"{r['escapes']} of {r['episodes']}", *_paired(r["escape"])]) + " |"
+                  for r in escaped]
         lines.append("")
     lines += [f"![{name.rsplit('.', 1)[0].rsplit('/', 1)[-1]}]({name})" for name in galleries or []]
     return lines + ([""] if galleries else [])

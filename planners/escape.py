@@ -1,0 +1,48 @@
+"""A way out of the planners' local minima: after ``patience`` moves that brought the rope's best error down by
+under ``min_gain``, take the greedy move (the node farthest from its place dragged towards it, planners/greedy.py)
+until the rope is ``min_gain`` below its best error before the stall, then hand back to the planner.
+
+Why: on a route a one-move planner can stall in a local minimum of its cost (the rope caught behind a peg, every
+single move that frees it raising the error first), while greedy, blind to the cost, walks through it; the grid's
+misses of CEM and the gradient planner are such stalls (docs/ROUTING.md). The error is the one the planner is given
+(the rope against the target on the board, or centroid-aligned off a route), so an episode from pictures stays one
+from pictures.
+"""
+from __future__ import annotations
+
+import torch
+
+from diffdlo.task import greedy_drags
+
+from .greedy import GreedyPlanner
+
+
+class StallEscape:
+    def __init__(self, sim, patience: int, pin: bool = False, min_gain: float = 1e-3):
+        if patience < 1:
+            raise ValueError(f"--escape must be >= 1 to escape (0: off), got {patience}")
+        self.patience, self.min_gain = int(patience), float(min_gain)
+        self.greedy = GreedyPlanner(sim, pin=int(pin))
+        self.reset()
+
+    def reset(self) -> None:
+        self.errors: list[float] = []       # the rope's error when each move was planned
+        self.escaping_below: float | None = None
+        self.escapes, self.moves = 0, 0
+
+    def plan(self, pos: torch.Tensor, target: torch.Tensor, pegs: torch.Tensor | None = None) -> torch.Tensor | None:
+        """The greedy action while escaping a stall, else None (the planner plans)."""
+        _, dist = greedy_drags(pos, target, self.greedy.p.max_disp, align=pegs is None)
+        error = float(dist.mean())
+        self.errors.append(error)
+        if self.escaping_below is not None and error < self.escaping_below:
+            self.escaping_below, self.errors = None, [error]            # out: the planner again, a fresh window
+        elif self.escaping_below is None and len(self.errors) > self.patience:
+            before, window = min(self.errors[:-self.patience]), min(self.errors[-self.patience:])
+            if before - window < self.min_gain:
+                self.escaping_below = min(before, window) - self.min_gain
+                self.escapes += 1
+        if self.escaping_below is None:
+            return None
+        self.moves += 1
+        return self.greedy.plan(pos, target, pegs)
