@@ -96,7 +96,8 @@ def plot_errors(cables: dict, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, len(cables), figsize=(3.2 * len(cables), 3.0), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(1, len(cables), figsize=(3.2 * len(cables), 3.4), squeeze=False, sharey=True,
+                             layout="constrained")
     for ax, (name, c) in zip(axes[0], cables.items()):
         t = [(2 + i) * deform.DT for i in range(len(c["ours"]["per_frame_m"]))]
         ax.plot(t, [100 * e for e in c["frozen"]["per_frame_m"]], color="grey", lw=1, label="frozen")
@@ -108,8 +109,8 @@ def plot_errors(cables: dict, path: Path) -> None:
         ax.set_xlabel("time [s]")
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("mean L1 error over eval files [cm]")
-    axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), fontsize=8)     # below the panels
     with replacing(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=90)
     plt.close(fig)

@@ -12,12 +12,7 @@ from diffdlo.real.chain3d import ChainDivergedError, ChainError, ChainParams
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")     # tests/conftest.py: one torch thread, restored after
 
 
 def bent_chain(batch, n, seed=0, spacing=0.1, wiggle=0.8, dtype=F64):

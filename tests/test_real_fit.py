@@ -16,12 +16,7 @@ F64 = torch.float64
 HELD = (0, 1, -2, -1)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")     # tests/conftest.py: one torch thread, restored after
 
 
 def synthetic(values, n=8, batch=4, frames=60, link=0.1, mass_per_length=0.05, marker=4e-4, seed=0, substeps=5,
