@@ -17,6 +17,12 @@ from diffdlo.task import greedy_drags
 from .greedy import GreedyPlanner
 
 
+def stalled(errors: list[float], window: int, min_gain: float) -> bool:
+    """Whether the last ``window`` errors brought the best of those before them down by less than ``min_gain``
+    (False while there are no errors before the window)."""
+    return len(errors) > window and min(errors[:-window]) - min(errors[-window:]) < min_gain
+
+
 class StallEscape:
     def __init__(self, sim, patience: int, pin: bool = False, min_gain: float = 1e-3):
         if patience < 1:
@@ -37,11 +43,9 @@ class StallEscape:
         self.errors.append(error)
         if self.escaping_below is not None and error < self.escaping_below:
             self.escaping_below, self.errors = None, [error]            # out: the planner again, a fresh window
-        elif self.escaping_below is None and len(self.errors) > self.patience:
-            before, window = min(self.errors[:-self.patience]), min(self.errors[-self.patience:])
-            if before - window < self.min_gain:
-                self.escaping_below = min(before, window) - self.min_gain
-                self.escapes += 1
+        elif self.escaping_below is None and stalled(self.errors, self.patience, self.min_gain):
+            self.escaping_below = min(self.errors) - self.min_gain
+            self.escapes += 1
         if self.escaping_below is None:
             return None
         self.moves += 1

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from planners.escape import stalled
+
 from .grid import route_targets, variant_targets
 from .stats import fmt_ci, t_interval, wilson
 from .summary import _episodes, pairs, paired_differences, paired_texts
@@ -62,8 +64,7 @@ def miss_reason(e: dict[str, Any]) -> str | None:
         return None
     if e.get("sides_kept") is False:
         return "wrong side"
-    errors = e.get("errors") or []
-    if len(errors) > STALL_MOVES and min(errors[-STALL_MOVES:]) > min(errors[:-STALL_MOVES]) - STALL_GAIN:
+    if stalled(e.get("errors") or [], STALL_MOVES, STALL_GAIN):
         return "stalled"
     return "improving"
 
