@@ -56,6 +56,7 @@ from agents.common.run import Run, learner
 from agents.sac import HybridActor
 from diffdlo.utils.checks import check_fields, option
 from diffdlo.rewards import reward as move_reward, shape_error
+from diffdlo.routing import route_errors, simulator_pegs
 from diffdlo.task import decode_node_action, greedy_drags
 
 NODE_RULES = ("score", "greedy", "gain")
@@ -112,17 +113,21 @@ class APGConfig:
 
 
 # ====================================================================== networks
-def graph_obs(obs_type: str, pos: torch.Tensor, target: torch.Tensor) -> Any:
-    """The observation of ropes ``pos`` (B, N, 2) as ``diffdlo.task.observe`` gives it, but keeping pos's graph."""
+def graph_obs(obs_type: str, pos: torch.Tensor, target: torch.Tensor, pegs: torch.Tensor | None = None) -> Any:
+    """The observation of ropes ``pos`` (B, N, 2) as ``diffdlo.task.observe`` gives it, but keeping pos's graph
+    (with ``pegs`` (B, K, 3), a route: the pegs too)."""
     if obs_type == "points":
-        return {"node_poses": pos.float(), "target_poses": target.detach().float()}
+        obs = {"node_poses": pos.float(), "target_poses": target.detach().float()}
+        return obs if pegs is None else {**obs, "pegs": pegs.detach().float()}
     return (pos - target.detach()).float()
 
 
 def greedy_node(obs: Any) -> torch.Tensor:
-    """(B,) the node farthest from its place in the centroid-aligned target (``diffdlo.task.greedy_drags``)."""
+    """(B,) the node farthest from its place in the centroid-aligned target (on a route, its place on the board:
+    ``diffdlo.task.greedy_drags``)."""
     pos, target = (obs["node_poses"], obs["target_poses"]) if isinstance(obs, dict) else (obs, torch.zeros_like(obs))
-    return greedy_drags(pos.detach(), target.detach(), 1.0)[1].argmax(-1)
+    align = not (isinstance(obs, dict) and "pegs" in obs)
+    return greedy_drags(pos.detach(), target.detach(), 1.0, align=align)[1].argmax(-1)
 
 
 class Actor(nn.Module):
@@ -175,16 +180,19 @@ class Critic(nn.Module):
 
 
 def move_graph(sim, p, pos: torch.Tensor, target: torch.Tensor, node: torch.Tensor, drag: torch.Tensor,
-               reward_kind: str, objective: str = "reward") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+               reward_kind: str, objective: str = "reward", pegs: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One differentiable move of ropes ``pos`` (B, N, 2): node ids (B,) and drags (B, 2) in [-1, 1] become the env's
     node action and are decoded by the env's own arithmetic (so the rope is the one the env's step gives), then
-    ``sim.move``. Returns (the env action (B, 3), the new ropes, the move's objective (B,): the env's reward, or
-    log e_t - log e_{t+1}), all with the graph from drag and pos."""
+    ``sim.move`` (among ``pegs`` (B, K, 3), the env's padded rows, on a route). Returns (the env action (B, 3), the
+    new ropes, the move's objective (B,): the env's reward, or log e_t - log e_{t+1} with e the env's error: on a
+    route the error on the board), all with the graph from drag and pos."""
     action = hybrid.to_env_action(node, drag, p.n_nodes)
     k, delta = decode_node_action(action.to(sim.device, sim.dtype), p)
-    new = sim.move(pos, k, delta)
-    r = (move_reward(reward_kind, pos, new, target) if objective == "reward"
-         else shape_error(pos, target).log() - shape_error(new, target).log())
+    new = sim.move(pos, k, delta, None if pegs is None else simulator_pegs(pegs.to(sim.device, sim.dtype)))
+    error = shape_error if pegs is None else (lambda x, y: route_errors(x, y).mean(-1))
+    r = (move_reward(reward_kind, pos, new, target, pegs) if objective == "reward"
+         else error(pos, target).log() - error(new, target).log())
     return action, new, r
 
 
@@ -246,13 +254,13 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
     def rollout(h: int) -> dict[str, Any]:
         """h moves of every training rope with the graph kept; the env steps along (same moves, its bookkeeping)."""
         state = env.core.get_state(generators=False)
-        pos, target = state.pos, state.target
+        pos, target, pegs = state.pos, state.target, state.pegs
         disc = torch.ones(num_envs, device=device)
         J = torch.zeros(num_envs, device=device)
         rec: dict[str, list] = {k: [] for k in ("obs", "log_prob", "entropy", "reward", "done", "value", "next_value",
                                                    "gain_loss")}
         for _ in range(h):
-            o = env.to_learner(graph_obs(obs_type, pos, target))
+            o = env.to_learner(graph_obs(obs_type, pos, target, pegs))
             with torch.no_grad():
                 if actor.net.feat.norm is not None:
                     actor.net.feat(o, update_norm=True)
@@ -262,7 +270,8 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
             node = actor.choose(o, log_pk, deterministic=False,
                                 explore=cfg.gain_explore * max(0.0, 1.0 - run.step / cfg.run.total_steps))
             rows = torch.arange(num_envs, device=device)
-            action, new, r = move_graph(sim, p, pos, target, node, drags[rows, node], reward_kind, cfg.objective)
+            action, new, r = move_graph(sim, p, pos, target, node, drags[rows, node], reward_kind, cfg.objective,
+                                        pegs)
             r = r.to(device)
             _, r_env, term, trunc, info, final_obs = env.step(action.detach())
             run.count(info, term, trunc, update_bar=True)
@@ -270,10 +279,10 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
             J = J + disc * r
             with torch.no_grad():
                 v_final = torch.where(term, 0.0, value(final_obs))
-                rec["value"].append(value(env.to_learner(graph_obs(obs_type, pos.detach(), target))))
+                rec["value"].append(value(env.to_learner(graph_obs(obs_type, pos.detach(), target, pegs))))
             if critic is not None:                   # truncated: the value of its true final state, through it
                 cut = (trunc & ~term).float()
-                J = J + disc * cfg.gamma * cut * critic(env.to_learner(graph_obs(obs_type, new, target)))
+                J = J + disc * cfg.gamma * cut * critic(env.to_learner(graph_obs(obs_type, new, target, pegs)))
             disc = torch.where(done, 1.0, disc * cfg.gamma)
             rec["obs"].append(rec_obs(o))
             rec["log_prob"].append(log_pk[rows, node])
@@ -287,8 +296,8 @@ def train(cfg: APGConfig, out: Path | str, resume: bool = False, progress: bool 
             rec["done"].append(done)
             rec["next_value"].append(v_final)                                        # fixed below where not done
             now = env.core.get_state(generators=False)                               # the reset ropes' new starts
-            pos, target = torch.where(done.to(sim.device).view(-1, 1, 1), now.pos, new), now.target
-        o_last = env.to_learner(graph_obs(obs_type, pos, target))
+            pos, target, pegs = torch.where(done.to(sim.device).view(-1, 1, 1), now.pos, new), now.target, now.pegs
+        o_last = env.to_learner(graph_obs(obs_type, pos, target, pegs))
         if critic is not None:                       # the value beyond the horizon of the ropes still going
             J = J + disc * (~rec["done"][-1]).float() * critic(o_last)
         with torch.no_grad():

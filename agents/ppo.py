@@ -69,7 +69,7 @@ class PPOConfig:
     hidden: list = option(factory=lambda: [64, 64], layers=True, help="the policy's and value's hidden layers")
 
     def check(self) -> None:
-        check_model_free(self)
+        check_model_free(self, pin=True)
 
 
 # ====================================================================== networks
@@ -101,31 +101,51 @@ class GaussianDist:
 
 
 class HybridDist:
-    """Node k ~ Cat(logits), drag d ~ N(mean[k], std): a stored action is the row (k, d_x, d_y)."""
+    """Node k ~ Cat(logits), drag d ~ N(mean[k], std): a stored action is the row (k, d_x, d_y). With the second
+    gripper (``pin_logits`` (B, N, N + 1), "node_pin" actions) the pin choice c ~ Cat(pin_logits[k]) (0: none, c: node
+    c - 1), conditioned on the grasped node, is a fourth entry: (k, d_x, d_y, c)."""
 
-    def __init__(self, logits: torch.Tensor, mean: torch.Tensor, std: torch.Tensor):
+    def __init__(self, logits: torch.Tensor, mean: torch.Tensor, std: torch.Tensor,
+                 pin_logits: torch.Tensor | None = None):
         self.cat = torch.distributions.Categorical(logits=logits)
         self.mean, self.std = mean, std                 # (B, N, 2), (2,)
+        self.pin_logits = pin_logits
 
     def _drag(self, node: torch.Tensor) -> torch.distributions.Normal:
         mu = self.mean[torch.arange(len(node), device=node.device), node]
         return torch.distributions.Normal(mu, self.std.expand_as(mu))
 
+    def _pin(self, node: torch.Tensor) -> torch.distributions.Categorical:
+        return torch.distributions.Categorical(
+            logits=self.pin_logits[torch.arange(len(node), device=node.device), node])
+
+    def _with_pin(self, node: torch.Tensor, row: torch.Tensor, mode: bool) -> torch.Tensor:
+        if self.pin_logits is None:
+            return row
+        pin = self._pin(node)
+        choice = pin.logits.argmax(-1) if mode else pin.sample()
+        return torch.cat([row, choice.to(row.dtype).unsqueeze(-1)], dim=-1)
+
     def sample(self) -> torch.Tensor:
         node = self.cat.sample()
-        return hybrid.join(node, self._drag(node).sample())
+        return self._with_pin(node, hybrid.join(node, self._drag(node).sample()), mode=False)
 
     def log_prob(self, a: torch.Tensor) -> torch.Tensor:
         node, drag = hybrid.split(a)
-        return self.cat.log_prob(node) + self._drag(node).log_prob(drag).sum(-1)
+        lp = self.cat.log_prob(node) + self._drag(node).log_prob(drag).sum(-1)
+        return lp if self.pin_logits is None else lp + self._pin(node).log_prob(hybrid.split_pin(a))
 
     def entropy(self) -> torch.Tensor:
-        """H(node) + H(drag | node): the drag's std does not depend on the node."""
-        return self.cat.entropy() + torch.distributions.Normal(0.0, self.std).entropy().sum(-1)
+        """H(node) + H(drag | node) (+ E_k H(pin | k) with the pin): the drag's std does not depend on the node."""
+        h = self.cat.entropy() + torch.distributions.Normal(0.0, self.std).entropy().sum(-1)
+        if self.pin_logits is not None:
+            pin_h = torch.distributions.Categorical(logits=self.pin_logits).entropy()      # (B, N)
+            h = h + (self.cat.probs * pin_h).sum(-1)
+        return h
 
     def mode(self) -> torch.Tensor:
         node = self.cat.logits.argmax(-1)
-        return hybrid.join(node, self._drag(node).mean)
+        return self._with_pin(node, hybrid.join(node, self._drag(node).mean), mode=True)
 
 
 class ActorCritic(nn.Module):
@@ -136,12 +156,14 @@ class ActorCritic(nn.Module):
     def __init__(self, obs_example: Any, action_dim: int, cfg: PPOConfig, length: float, n_nodes: int):
         super().__init__()
         self.hybrid, self.n_nodes = cfg.policy == "hybrid", n_nodes
+        self.pin = self.hybrid and cfg.task.action == "node_pin"      # a pin choice per node: N x (N + 1) logits
         self.features = Features(obs_example, cfg.inputs, length)
         feat_dim = self.features.out_dim
         last = cfg.hidden[-1] if cfg.hidden else feat_dim
         self.pi = ortho(mlp(feat_dim, cfg.hidden, None, nn.Tanh), math.sqrt(2))
         self.vf = ortho(mlp(feat_dim, cfg.hidden, None, nn.Tanh), math.sqrt(2))
         out = n_nodes * 3 if self.hybrid else action_dim      # hybrid: N logits + N drag means (x, y)
+        out += n_nodes * (n_nodes + 1) if self.pin else 0
         self.mean = ortho(nn.Linear(last, out), 0.01)
         self.value_head = ortho(nn.Linear(last, 1), 1.0)
         self.log_std = nn.Parameter(torch.full((2 if self.hybrid else action_dim,), float(cfg.log_std_init)))
@@ -155,7 +177,8 @@ class ActorCritic(nn.Module):
         std = self.log_std.exp()
         if self.hybrid:
             n = self.n_nodes
-            d = HybridDist(out[:, :n], out[:, n:].reshape(-1, n, 2), std)
+            d = HybridDist(out[:, :n], out[:, n:3 * n].reshape(-1, n, 2), std,
+                           out[:, 3 * n:].reshape(-1, n, n + 1) if self.pin else None)
         else:
             d = GaussianDist(0.5 + out, std)
         return d, self.value_head(self.vf(h)).squeeze(-1)
@@ -164,6 +187,8 @@ class ActorCritic(nn.Module):
         """A stored action (the sample) -> the env's action in [0, 1]^A."""
         if self.hybrid:
             node, drag = hybrid.split(stored)
+            if self.pin:
+                return hybrid.to_env_pin_action(node, drag, hybrid.split_pin(stored), self.n_nodes)
             return hybrid.to_env_action(node, drag, self.n_nodes)
         return stored.clamp(0.0, 1.0)
 

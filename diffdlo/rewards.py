@@ -5,6 +5,8 @@ import math
 
 import torch
 
+from .routing import route_cost
+
 
 def abs_diff(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """(B,) eq 2.7 sum_i |x_i - y_i| (Euclidean distance per node, absolute positions)."""
@@ -111,14 +113,32 @@ def reward_route_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.T
     return 100.0 * ((prev_pos - target).norm(dim=-1).mean(-1) - (pos - target).norm(dim=-1).mean(-1))
 
 
-REWARDS = ("position_orientation", "abs_diff", "delta_gain", "shape_gain", "route_gain")
+def reward_route_side_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor,
+                           pegs: torch.Tensor) -> torch.Tensor:
+    """(B,) ours, for routes: 100 x (route cost before - after) [cm], the route cost being the planners'
+    (``diffdlo.routing.route_cost``: the mean node distance on the board plus SIDE_COST = 5 cm per peg passed on the
+    wrong side). route_gain plus 5 for each peg a move brings to the route's side (minus 5 for each it takes off):
+    a shaping of the success test's side condition by a potential (Ng et al. 1999), so a policy is paid for the
+    side before it is within 1 cm."""
+    return 100.0 * (route_cost(prev_pos, target, pegs) - route_cost(pos, target, pegs))
+
+
+REWARDS = ("position_orientation", "abs_diff", "delta_gain", "shape_gain", "route_gain", "route_side_gain")
 # The rewards that see where the rope lies on the board (the others align centroids or compare shapes only): the
 # ones a route can be scored by.
-BOARD_REWARDS = ("abs_diff", "delta_gain", "route_gain")
+BOARD_REWARDS = ("abs_diff", "delta_gain", "route_gain", "route_side_gain")
+# The rewards that need the pegs (a route only)
+PEG_REWARDS = ("route_side_gain",)
 
 
-def reward(kind: str, prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """(B,) the reward named ``kind`` (one of REWARDS) for the move prev_pos -> pos."""
+def reward(kind: str, prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor,
+           pegs: torch.Tensor | None = None) -> torch.Tensor:
+    """(B,) the reward named ``kind`` (one of REWARDS) for the move prev_pos -> pos (``pegs`` (B, K, 3): a route's,
+    which "route_side_gain" needs)."""
+    if kind == "route_side_gain":
+        if pegs is None:
+            raise ValueError("reward 'route_side_gain' scores the pegs' sides: it needs a route's pegs")
+        return reward_route_side_gain(prev_pos, pos, target, pegs)
     if kind == "position_orientation":
         return reward_position_orientation(pos, target)
     if kind == "abs_diff":

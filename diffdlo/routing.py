@@ -73,6 +73,17 @@ def route_errors(pos: torch.Tensor, route: torch.Tensor) -> torch.Tensor:
     return (pos - route.expand_as(pos)).norm(dim=-1)
 
 
+# What a peg passed on the wrong side costs [m]: five times the success tolerance, more than the error any single move
+# removes, so no plan trades a side for distance (the planners' cost; the reward "route_side_gain").
+SIDE_COST = 0.05
+
+
+def route_cost(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
+    """(..., N, 2) -> (...,): a route's cost, the mean node distance on the board plus SIDE_COST per peg (K, 3)
+    passed on the wrong side."""
+    return route_errors(pos, route).mean(-1) + SIDE_COST * wrong_sides(pos, route, pegs).to(pos.dtype)
+
+
 # ====================================================================== layouts
 @dataclasses.dataclass(frozen=True)
 class Layout:

@@ -213,7 +213,7 @@ def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torc
     the episode (on_exit "truncate", Algorithm 2) or terminates it with reward -exit_penalty (on_exit "fail");
     reaching max_steps truncates. Every other move gets the named reward minus step_penalty.
     """
-    r = move_reward(rules.reward, prev, new, target)
+    r = move_reward(rules.reward, prev, new, target, pegs)
     if pegs is None:
         success = is_success(new, target, rules.success_tol, rules.success_worst_tol)
     else:

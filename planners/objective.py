@@ -29,16 +29,10 @@ from diffdlo.rewards import shape_error
 from diffdlo.task import decode_node_action, decode_pin
 from diffdlo.simulator import Simulator
 
-# What a peg passed on the wrong side costs a route's plan [m]: five times the success tolerance, more than the
-# error any single move removes, so no plan trades a side for distance.
-SIDE_COST = 0.05
-
-
-def route_cost(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
-    """(..., N, 2) -> (...,): a route's cost, the mean node distance on the board plus SIDE_COST per peg (K, 3)
-    passed on the wrong side."""
-    return (routing.route_errors(pos, route).mean(-1)
-            + SIDE_COST * routing.wrong_sides(pos, route, pegs).to(pos.dtype))
+# A route's cost (the error on the board plus SIDE_COST per peg on the wrong side) is the routing task's own rule:
+# diffdlo.routing holds it, so the env's reward "route_side_gain" and the planners score the same thing.
+SIDE_COST = routing.SIDE_COST
+route_cost = routing.route_cost
 
 
 def sequence_cost(states: list[torch.Tensor], target: torch.Tensor, running_weight: float = 0.0,

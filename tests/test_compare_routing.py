@@ -1,7 +1,7 @@
-"""The comparison's routing rows (issue 59): compare.yaml's `route` tasks (a task key -> the env's route target),
-which only the `route*` variants run, their planner commands, and the report's routing section: the side test's
-failures counted apart, the pin row paired against the same row without the pin, and galleries drawn on the board
-with the pegs."""
+"""The comparison's routing rows (issues 59, 60): compare.yaml's `route` tasks (a task key -> the env's route target),
+which only the `route*` variants run, their planner commands, the learners trained on random boards and read on the
+held-out layouts, and the report's routing section: the side test's failures counted apart, the pin row paired
+against the same row without the pin, and galleries drawn on the board with the pegs."""
 import copy
 
 import numpy as np
@@ -9,13 +9,16 @@ import pytest
 
 from benchmarks import compare
 from benchmarks.compare.figures import _gallery, _gallery_panels, final_errors
-from benchmarks.compare.grid import env_target, load_grid, route_targets, variant_targets
+from benchmarks.compare.grid import env_target, learner_source, load_grid, route_targets, variant_targets
+from benchmarks.compare.summary import task_source
 from benchmarks.compare.routing import partner, routing_data, routing_rows, routing_section
 from diffdlo import routing
 
 ROUTE_ROWS = ([("greedy", v) for v in ("route", "route_pin")]
               + [(m, v) for m in ("cem", "gradient")
                  for v in ("route", "route_pin", "route_escape", "route_pin_escape")])
+LEARNER_ROUTE_ROWS = [("ppo", "route"), ("ppo", "route_pin"), ("ppo", "route_rollouts"), ("pets", "route"),
+                      ("pets", "route_pin"), ("apg", "route")]
 
 
 def test_only_the_route_rows_run_the_routing_tasks_each_on_its_env_target():
@@ -23,21 +26,35 @@ def test_only_the_route_rows_run_the_routing_tasks_each_on_its_env_target():
     routes = route_targets(grid)
     assert routes == ["route", "route_hook_wrap", "route_zigzag_four"]
     assert {env_target(grid, t).split(":")[-1] for t in routes[1:]} == set(routing.HELD_OUT_LAYOUTS)
-    assert routing_rows(grid) == ROUTE_ROWS
+    assert sorted(routing_rows(grid)) == sorted(ROUTE_ROWS + LEARNER_ROUTE_ROWS)
     cells = compare.build_cells(grid, "/tmp/out")
     on_routes = [c for c in cells if c["target"] in routes]
-    assert {(c["method"], c["variant"]) for c in on_routes} == set(ROUTE_ROWS)
-    assert len(on_routes) == len(ROUTE_ROWS) * len(routes) * len(grid["seeds"])
-    for c in on_routes:
+    assert {(c["method"], c["variant"]) for c in on_routes} == set(ROUTE_ROWS + LEARNER_ROUTE_ROWS)
+    planners = [c for c in on_routes if c["kind"] == "planner"]
+    assert len(planners) == len(ROUTE_ROWS) * len(routes) * len(grid["seeds"])
+    for c in planners:
         argv = c["argv"]
         assert argv[argv.index("--target") + 1] == env_target(grid, c["target"])
         assert argv[argv.index("--max-steps") + 1] == "40"
         assert ("--pin" in argv) == ("_pin" in c["variant"])
         assert ("--escape" in argv) == c["variant"].endswith("_escape")
+    # a learner trains on random boards only and is read on the held-out layouts after training, labelled as the
+    # grid's tasks
+    learners = [c for c in on_routes if c["kind"] == "agent"]
+    assert {c["target"] for c in learners} == {"route"}
+    assert len(learners) == len(LEARNER_ROUTE_ROWS) * len(grid["seeds"])
+    for c in learners:
+        argv = c["argv"]
+        assert argv[argv.index("--target") + 1] == "route" and argv[argv.index("--max-steps") + 1] == "40"
+        assert "eval_targets=[route:hook_wrap, route:zigzag_four]" in argv
+        assert ("action=node_pin" in argv) == ("_pin" in c["variant"])
+    for task in routes[1:]:
+        assert learner_source(grid, task) == "route"
+        assert task_source(grid, "pets", "route", task) == "route"
     # every other row runs the free rope only, as before the routes came
     for method, spec in grid["methods"].items():
         for variant, entry in spec["variants"].items():
-            if (method, variant) not in ROUTE_ROWS:
+            if (method, variant) not in ROUTE_ROWS + LEARNER_ROUTE_ROWS:
                 assert not set(variant_targets(grid, entry or {})) & set(routes), (method, variant)
 
 
@@ -51,6 +68,9 @@ def test_a_pin_or_escape_row_is_paired_with_the_row_that_differs_from_it_by_that
         assert partner(grid, method, "route_pin_escape", "escape") == "route_pin"
         assert partner(grid, method, "route_pin_escape", "pin") == "route_escape"
         assert partner(grid, method, "route_pin", "escape") is None
+    for method in ("ppo", "pets"):                # a learner's pin: its action node_pin
+        assert partner(grid, method, "route_pin") == "route"
+    assert partner(grid, "ppo", "route_rollouts") is None
     grid = copy.deepcopy(grid)
     grid["methods"]["cem"]["variants"]["route"]["args"]["candidates"] = 100      # no longer the pin alone
     assert partner(grid, "cem", "route_pin") is None

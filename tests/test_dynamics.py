@@ -47,7 +47,7 @@ def test_augmentations_are_symmetries_of_the_simulator(augment):
     pos, node, drag = random_ropes(p, 8)
     nxt = sim.move(pos, node, drag)
     torch.manual_seed(3)
-    rope, n2, d2 = model.transform(torch.stack([pos, nxt], 1), node[:, None], drag[:, None])
+    rope, n2, d2 = model.transform(torch.stack([pos, nxt], 1), node[:, None], drag[:, None])[:3]
     assert not torch.allclose(rope[:, 0], pos)                          # the transform did something
     again = sim.move(rope[:, 0].contiguous(), n2[:, 0], d2[:, 0].contiguous())
     assert (again - rope[:, 1]).norm(dim=-1).max() < 1e-6               # [m]: far below the 1 cm task tolerance
@@ -59,10 +59,10 @@ def test_transform_is_off_in_eval_mode_and_keeps_shapes():
     pos, node, drag = random_ropes(p, 4)
     chunk = torch.stack([pos, pos], 1).float()
     model.eval()
-    r, n, d = model.transform(chunk, node[:, None], drag[:, None].float())
+    r, n, d = model.transform(chunk, node[:, None], drag[:, None].float())[:3]
     assert r is chunk and torch.equal(n, node[:, None])
     model.train()
-    r, n, d = model.transform(chunk, node[:, None].expand(4, 3), drag[:, None].float().expand(4, 3, 2))
+    r, n, d = model.transform(chunk, node[:, None].expand(4, 3), drag[:, None].float().expand(4, 3, 2))[:3]
     assert r.shape == chunk.shape and n.shape == (4, 3) and d.shape == (4, 3, 2)
 
 

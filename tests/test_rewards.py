@@ -60,14 +60,33 @@ def test_shape_error_is_translation_free_and_orientation_sensitive(params):
 def test_rewards_are_batched_and_unknown_names_raise(params):
     pos = diffdlo.random_shape(5, params, torch.Generator().manual_seed(0), dtype=torch.float64)
     target = diffdlo.target_shape("diagonal", params, dtype=torch.float64)
+    pegs = torch.tensor([[0.05, 0.02, 0.01], [0.0, 0.0, 0.0]], dtype=torch.float64).expand(5, 2, 3)
     for kind in diffdlo.REWARDS:
-        r = diffdlo.reward(kind, pos, pos.flip(0), target)
+        r = diffdlo.reward(kind, pos, pos.flip(0), target, pegs)
         assert r.shape == (5,) and torch.isfinite(r).all()
         for b in range(5):
-            single = diffdlo.reward(kind, pos[b:b + 1], pos.flip(0)[b:b + 1], target)
+            single = diffdlo.reward(kind, pos[b:b + 1], pos.flip(0)[b:b + 1], target, pegs[b:b + 1])
             assert single.item() == pytest.approx(r[b].item())
     with pytest.raises(ValueError, match="unknown reward 'nope'"):
         diffdlo.reward("nope", pos, pos, target)
+    with pytest.raises(ValueError, match="'route_side_gain' scores the pegs' sides: it needs a route's pegs"):
+        diffdlo.reward("route_side_gain", pos, pos, target)
+
+
+def test_route_side_gain_is_route_gain_plus_five_per_peg_brought_to_its_side(params):
+    """A straight route under a peg: the rope moved from over the peg (wrong side) to the route earns the cm of
+    error it removed plus 100 x SIDE_COST = 5; the reverse move loses as much."""
+    from diffdlo.routing import SIDE_COST
+    n, length = params.n_nodes, params.length
+    x = torch.linspace(-length / 2, length / 2, n, dtype=torch.float64)
+    route = torch.stack([x, torch.zeros_like(x)], -1)
+    pegs = torch.tensor([[[0.0, 0.02, 0.01]]], dtype=torch.float64)
+    over = (route + torch.tensor([0.0, 0.045], dtype=torch.float64))[None]
+    near = (route + torch.tensor([0.0, -0.01], dtype=torch.float64))[None]
+    gain = diffdlo.reward("route_gain", over, near, route)
+    side = diffdlo.reward("route_side_gain", over, near, route, pegs)
+    assert float(side - gain) == pytest.approx(100 * SIDE_COST, abs=1e-9)
+    assert float(diffdlo.reward("route_side_gain", near, over, route, pegs)) == pytest.approx(-float(side))
 
 
 def test_pairwise_term_has_finite_gradients_at_coincident_nodes():

@@ -137,22 +137,26 @@ class InputOptions:
             raise ValueError("normalize_obs needs features 'relative' (images and raw observations are not normalized)")
 
 
-def check_model_free(cfg) -> None:
+def check_model_free(cfg, pin: bool = False) -> None:
     """The checks SAC's and PPO's configs share: their task, run and input options, every own field against the
-    rule declared beside it, and the policy head against the actions."""
+    rule declared beside it, and the policy head against the actions (``pin``: the learner's hybrid head also
+    chooses the second gripper's node, "node_pin" actions)."""
     cfg.task.check()
     cfg.run.check()
     cfg.inputs.check(cfg.task)
     check_fields(cfg, skip=SECTIONS)
-    check_policy(cfg.policy, cfg.task)
+    check_policy(cfg.policy, cfg.task, pin)
 
 
-def check_policy(policy: str, task: TaskOptions) -> None:
+def check_policy(policy: str, task: TaskOptions, pin: bool = False) -> None:
     """SAC's and PPO's policy head (one of POLICIES, checked with the field): "hybrid" (node categorical + per-node
-    drag) needs node actions."""
-    if policy == "hybrid" and task.action != "node":
-        raise ValueError(f"policy 'hybrid' chooses a node: it needs action 'node', got {task.action!r} "
-                         "(use --set policy=gaussian for pixel actions)")
+    drag) needs node actions ("node", or "node_pin" where the learner's head chooses the pin too)."""
+    allowed = ("node", "node_pin") if pin else ("node",)
+    if policy == "hybrid" and task.action not in allowed:
+        hint = ("use --set policy=gaussian for pixel actions" if "pixel" in str(task.action) else
+                "the second gripper's choice is PPO's hybrid head only (agents/ppo.py)")
+        raise ValueError(f"policy 'hybrid' chooses a node: it needs action {' or '.join(map(repr, allowed))}, got "
+                         f"{task.action!r} ({hint})")
 
 
 def part(cls, **defaults):

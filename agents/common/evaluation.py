@@ -16,13 +16,16 @@ from agents.common.envs import TrainEnv, make_env
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.utils.files import shapes_record, write_json_atomic
 from diffdlo.params import CableParams
-from diffdlo.task import target_label
+from diffdlo.task import ROUTE, ROUTE_PREFIX, target_label
 
 # an episode's record in results.json; start_error (the shape error after reset) identifies the start shape, so a
 # report can check that two methods' episode i are the same episode (planners record it too); errors and
 # worst_errors: the shape error and the worst node's error [m] after the reset and after each move (steps + 1 each,
 # as a planner's), from which success at another tolerance is read (benchmarks.compare.stats.success_move)
-EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name", "errors", "worst_errors")
+# a route's episodes also keep sides_kept (every peg on the route's side at the episode's end: the report's
+# wrong-side count) and pegs (the board, x, y, radius per peg), as a planner's
+EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name", "errors", "worst_errors",
+                "sides_kept", "pegs")
 
 # ====================================================================== evaluation
 @torch.no_grad()
@@ -55,6 +58,7 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
         ret = torch.zeros(b, dtype=torch.float64)
         final_err = torch.zeros(b)
         success = torch.zeros(b, dtype=torch.bool)
+        sides = torch.ones(b, dtype=torch.bool)
         steps = torch.zeros(b, dtype=torch.int64)
         final_pos = env.core.get_state(generators=False).pos
         while bool(active.any()):
@@ -72,6 +76,8 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
             done = (term | trunc).cpu() & active
             final_err[done] = info["shape_error"].cpu().float()[done]
             success[done] = info["is_success"].cpu()[done]
+            if "sides_kept" in info:
+                sides[done] = info["sides_kept"].cpu()[done]
             if bool(done.any()):
                 d = done.to(final_pos.device)
                 final_pos[d] = env.core.get_state(generators=False).pos[d]
@@ -83,6 +89,9 @@ def evaluate(policy: Callable[[Any, bool], torch.Tensor], env: TrainEnv | Batche
                              "return": float(ret[i]),
                              "target_name": state.target_names[i], "errors": errors[i],
                              "worst_errors": worst_errors[i]})
+            if state.pegs is not None:
+                board = state.pegs[i].detach().cpu().double()
+                episodes[-1].update(sides_kept=bool(sides[i]), pegs=board[board[:, 2] > 0].tolist())
             ropes.append(final_pos[i].detach().cpu())
             starts.append(start_pos[i])
             targets.append(state.target[i].detach().cpu())
@@ -103,11 +112,14 @@ def episode_records(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def heldout_envs(task: TaskOptions, run: RunOptions, params: CableParams) -> dict[str, tuple[Any, TrainEnv]]:
     """One evaluation env per entry of ``run.eval_targets`` (target shapes the learner does not train on, e.g.
-    planners/targets/arc.npy), keyed by a label (the file's stem, or the name): label -> (spec, env). Built before
+    planners/targets/arc.npy, or fixed routes, e.g. route:hook_wrap), keyed by a label (the file's stem, or the name;
+    a fixed route "route_<layout>", the comparison's name of that task): label -> (spec, env). Built before
     training, so a bad target is an error at once, not after the run."""
     envs: dict[str, tuple[Any, TrainEnv]] = {}
     for spec in run.eval_targets or []:
         label = target_label(spec) if target_label(spec) != "custom" else str(spec)
+        if isinstance(spec, str) and spec.startswith(ROUTE_PREFIX):
+            label = f"{ROUTE}_{label}"
         if label in envs:
             raise ValueError(f"eval_targets: {spec!r} repeats the label {label!r}")
         envs[label] = (spec, make_env(dataclasses.replace(task, target=spec), run, params,

@@ -94,7 +94,8 @@ class PolicyRollouts:
         cand = self._candidates(obs)
         env = self._env(b * c)
         core = env.core
-        core.set_state(pos=pos.repeat_interleave(c, 0), target=target.repeat_interleave(c, 0), steps=0)
+        pegs = obs["pegs"].repeat_interleave(c, 0) if "pegs" in obs else None    # a route's board, copied too
+        core.set_state(pos=pos.repeat_interleave(c, 0), target=target.repeat_interleave(c, 0), steps=0, pegs=pegs)
         _, _, term, trunc, info = core.step(cand.reshape(b * c, -1).to(core.device, core.dtype))
         moves, error, evals = moves_to_success(env, self.policy, info["is_success"].cpu(), (term | trunc).cpu(),
                                                self.moves)

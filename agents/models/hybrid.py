@@ -12,15 +12,23 @@ Relative features. The success metric compares node i with target node i after c
 exactly that: the centred rope minus the centred target, the centred rope, and the rope's centroid (how close the
 workspace edge is), each in rope lengths: 4N + 2 numbers. They are the same for every target shape, which is what a
 policy trained on random curves needs to generalize.
+
+Among pegs (a route: the points observation carries "pegs") the error is measured on the board, so the difference is
+NOT centred (rope - route), and each peg slot adds four numbers: its centre relative to the rope's centroid and its
+radius (rope lengths), and its side gap, (the rope's winding round it - the route's) / 2 pi (``diffdlo.routing.winding``;
+about 0 on the route's side, about +-1 on the other): 4N + 2 + 4 K numbers, an empty slot all zeros. The side gap is
+the success test's own quantity, read from the observation (no privileged input).
 """
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
 import torch.nn as nn
 
-from diffdlo.task import decode_drag, decode_node, encode_node_action
+from diffdlo.routing import winding
+from diffdlo.task import decode_drag, decode_node, encode_node_action, encode_pin
 
 
 # ====================================================================== hybrid action <-> env action (eq 2.6, diffdlo.task)
@@ -38,7 +46,7 @@ def from_env_action(action: torch.Tensor, n_nodes: int) -> tuple[torch.Tensor, t
 
 def split(stored: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """A stored hybrid action row (B, 3) = (k, d_x, d_y) -> node ids (B,) int64 and raw drags (B, 2)."""
-    return stored[:, 0].round().to(torch.int64), stored[:, 1:]
+    return stored[:, 0].round().to(torch.int64), stored[:, 1:3]
 
 
 def join(node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
@@ -46,18 +54,45 @@ def join(node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
     return torch.cat([node.to(drag.dtype).unsqueeze(-1), drag], dim=-1)
 
 
+# The second gripper ("node_pin" actions, a route): the stored row gains a fourth entry, the pin choice c in [0, N]:
+# 0 holds nothing, c holds node c - 1 (a choice of the grasped node holds nothing too: the env's rule).
+def split_pin(stored: torch.Tensor) -> torch.Tensor:
+    """A stored row (B, 4) = (k, d_x, d_y, c) -> the pin choices c (B,) int64 in [0, N]."""
+    return stored[:, 3].round().to(torch.int64)
+
+
+def to_env_pin_action(node: torch.Tensor, drag: torch.Tensor, choice: torch.Tensor, n_nodes: int) -> torch.Tensor:
+    """Node ids (B,), drags (B, 2) in [-1, 1] and pin choices (B,) in [0, N] -> (B, 4) "node_pin" env actions: the
+    node action, then ``diffdlo.task.encode_pin`` of node c - 1 (-1: none)."""
+    if choice.numel() and (int(choice.min()) < 0 or int(choice.max()) > n_nodes):
+        raise ValueError(f"pin choices must lie in [0, {n_nodes}], got {choice.tolist()}")
+    pin = encode_pin(choice - 1, n_nodes, drag.dtype).unsqueeze(-1)
+    return torch.cat([to_env_action(node, drag, n_nodes), pin], dim=-1)
+
+
 # ====================================================================== features
 
 
 def relative_features(obs: Any, length: float) -> torch.Tensor:
     """Target-relative features (B, F) of a points observation (4N + 2: centred rope - centred target, centred rope,
-    centroid) or of a distance observation (2N: the centred difference only), in rope lengths."""
+    centroid; with pegs, a route: rope - route on the board, centred rope, centroid, then per peg slot its centre
+    from the centroid, radius and side gap: 4N + 2 + 4K) or of a distance observation (2N: the centred difference
+    only), in rope lengths (the side gap in turns)."""
     if isinstance(obs, dict):
         rope, target = obs["node_poses"].float(), obs["target_poses"].float()
         centroid = rope.mean(1, keepdim=True)
         rope_c = rope - centroid
-        diff = rope_c - (target - target.mean(1, keepdim=True))
-        return torch.cat([diff.flatten(1), rope_c.flatten(1), centroid.flatten(1)], dim=1) / length
+        if "pegs" not in obs:
+            diff = rope_c - (target - target.mean(1, keepdim=True))
+            return torch.cat([diff.flatten(1), rope_c.flatten(1), centroid.flatten(1)], dim=1) / length
+        pegs = obs["pegs"].float()
+        present = (pegs[..., 2] > 0).to(rope.dtype)                       # (B, K): 0 for an empty slot
+        centres = pegs[..., :2]
+        gap = (winding(rope, centres) - winding(target, centres)) / (2 * math.pi) * present
+        rel = (centres - centroid) * present.unsqueeze(-1)
+        return torch.cat([((rope - target).flatten(1) / length), rope_c.flatten(1) / length,
+                          centroid.flatten(1) / length, rel.flatten(1) / length,
+                          pegs[..., 2] / length, gap], dim=1)
     diff = obs.float()
     return (diff - diff.mean(1, keepdim=True)).flatten(1) / length
 

@@ -220,7 +220,7 @@ class LatentWorldModel(nn.Module):
         mask = torch.ones(b, L + 1, device=rope.device, dtype=dtype) if mask is None else mask.to(dtype)
         node, drag = decode_node_action(actions.to(dtype), self.p)
         if self.training:
-            rope, node, drag = symmetry_transform(rope, node, drag, self.augment)
+            rope, node, drag = symmetry_transform(rope, node, drag, self.augment)[:3]
         fr = Frame.of(rope[:, 0], node[:, 0], drag[:, 0], self.frame)
         x = fr.points_in(rope)                                       # (B, L+1, N, 2) in the first move's frame
         drag = fr.vectors_in(drag)

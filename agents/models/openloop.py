@@ -54,8 +54,9 @@ def open_loop_eval(model: RSSM | EnsembleDynamics | LatentWorldModel, cfg, n_epi
         acts.append(a)
     true = torch.stack(pos_seq[context + 1:], 1).float()                              # (n, K, N, 2)
     if not isinstance(model, RSSM):            # a model of node positions that predicts from the observed rope
+        pegs = env.core.get_state(generators=False).pegs if getattr(model, "max_pegs", 0) else None
         out = k_step_errors(model, pos_seq[context].float(), torch.stack(acts[context:], 1), true, horizons,
-                            alive.to(true.device))
+                            alive.to(true.device), pegs)
         out.update({"n": int(alive.sum()), "context": context, "true": true.cpu(), "alive": alive,
                     "target": env.core.get_state(generators=False).target.float().cpu()})
         out["pred"] = out["pred"].cpu()

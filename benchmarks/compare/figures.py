@@ -18,7 +18,7 @@ import numpy as np
 
 from diffdlo.utils.files import replacing
 from .costs import acting_sim_evals
-from .grid import main_rows, route_targets
+from .grid import learner_source, main_rows, route_targets
 from .precision import ladder_points, short_label, split_done
 from .summary import heldout_source
 from .stats import t_quantile
@@ -288,9 +288,10 @@ def _gallery_panels(grid: dict[str, Any], done: list, target: str) -> list[tuple
     collected before the records held shapes), or None where it has not run."""
     main = grid.get("main") or {}
     keep = set(main_rows(grid)) | set(main_rows(grid, image=True)) if main else None
-    if target in route_targets(grid):            # a routing task: every row that runs there (none is a main row)
-        keep = None
     trained_on = heldout_source(grid) if main else None
+    if target in route_targets(grid):            # a routing task: every row that runs there (none is a main row),
+        keep = None                              # a learner on a held-out route by its cells on learner_source
+        trained_on = learner_source(grid, target)
     rows: dict[tuple, dict[int, Any]] = {}
     for c, r in done:
         if keep is not None and (c["method"], c["variant"]) not in keep:

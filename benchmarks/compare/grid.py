@@ -86,6 +86,15 @@ def route_targets(grid: dict[str, Any]) -> list[str]:
     return [t for t in grid["targets"] if t in routes]
 
 
+def learner_source(grid: dict[str, Any], task: str) -> str | None:
+    """The task whose cells evaluate a learner on ``task`` after training (their results "heldout"), where a learner
+    never trains on ``task`` itself: a held-out shape -> the main ``heldout_trained_on`` (default random), a
+    held-out route (the grid's ``heldout_routes``) -> the routing task it maps to; None for every other task."""
+    if task in grid.get("heldout", {}):
+        return (grid.get("main") or {}).get("heldout_trained_on", "random")
+    return (grid.get("heldout_routes") or {}).get(task)
+
+
 def variant_targets(grid: dict[str, Any], variant: dict[str, Any]) -> list[str]:
     """The tasks a variant runs: its own ``targets``, by default the grid's free-rope tasks (every target but the
     routes: a row runs among pegs only where it says so)."""
@@ -168,8 +177,9 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
                             "kind": spec["kind"], "dir": str(d), "grid": grid["name"], "eval_seed": eval_seed,
                             "cwd": str(Path.cwd()),   # relative paths are relative to it (also on Ray workers)
                             "grid_entry": grid_entry(grid, spec, v)}   # stored in cell.json with the argv
-                    if spec["kind"] == "agent" and target in grid.get("heldout", {}):
-                        continue          # learners never train on a held-out shape (their rows: results "heldout")
+                    if spec["kind"] == "agent" and learner_source(grid, target):
+                        continue          # learners never train on a held-out shape or route (their rows: results
+                                          # "heldout" of the cells on learner_source)
                     filled = {"args": _filled(v.get("args"), out=out, target=target, seed=seed),
                               "set": _filled(v.get("set"), out=out, target=target, seed=seed)}
                     if spec["kind"] == "planner":
@@ -178,7 +188,8 @@ def build_cells(grid: dict[str, Any], out: Path | str, methods=None, variants=No
                                                str(grid["episodes"]), "--out", str(d)]
                     else:
                         sets = [x for k, val in filled["set"].items() for x in ("--set", f"{k}={val}")]
-                        cell["argv"] = ["-m", spec.get("module", f"agents.{method}"), "--target", target, "--seed", str(seed),
+                        cell["argv"] = ["-m", spec.get("module", f"agents.{method}"), "--target", env_target(grid, target),
+                                        "--seed", str(seed),
                                         *_flags(filled["args"]), "--eval-episodes", str(grid["episodes"]),
                                         "--set", f"eval_seed={eval_seed}", *sets, "--threads", "1", "--no-progress",
                                         "--out", str(d)]

@@ -15,12 +15,12 @@ import numpy as np
 
 from planners.escape import stalled
 
-from .grid import route_targets, variant_targets
+from .grid import learner_source, route_targets, variant_targets
 from .stats import fmt_ci, t_interval, wilson
 from .summary import _episodes, pairs, paired_differences, paired_texts
 
 HEAD = ["method", "variant", "task", "seeds × episodes", "success @1 cm, every peg on its side", "moves (solved)",
-        "under 1 cm, a peg on the wrong side", "misses: wrong side / stalled / improving", "final error [cm]", "sim moves / episode", "s / move",
+        "under 1 cm, a peg on the wrong side", "misses: wrong side / stalled / improving", "final error [cm]", "sim moves / episode (a learner: its training)", "s / move",
         "pin: Δ success [pp]", "pin: Δ moves (both solved)", "pairs"]
 
 
@@ -31,17 +31,29 @@ def routing_rows(grid: dict[str, Any]) -> list[tuple[str, str]]:
             if routes & set(variant_targets(grid, entry or {}))]
 
 
+def _settings(entry: dict[str, Any] | None, flag: str) -> tuple[bool, dict[str, Any]]:
+    """Whether a variant has ``flag`` on (a planner's ``--pin 1`` / ``--escape K``; a learner's pin: its
+    ``action: node_pin``), and its args and set without it."""
+    entry = entry or {}
+    args, sets = dict(entry.get("args") or {}), dict(entry.get("set") or {})
+    on = bool(args.pop(flag, 0))
+    if flag == "pin" and sets.get("action") == "node_pin":
+        on = True
+        sets.pop("action")
+    return on, {"args": args, "set": sets}
+
+
 def partner(grid: dict[str, Any], method: str, variant: str, flag: str = "pin") -> str | None:
-    """The variant of ``method`` that a row with a true ``flag`` in its args (``pin``, ``escape``) is paired against:
-    the one whose args are its args without that flag (None for a row without it, or where there is no such
-    variant)."""
+    """The variant of ``method`` that a row with a true ``flag`` (``pin``, ``escape``: ``_settings``) is paired
+    against: the one whose settings are its settings without that flag (None for a row without it, or where there
+    is no such variant)."""
     variants = grid["methods"][method]["variants"]
-    args = dict((variants[variant] or {}).get("args") or {})
-    if not args.pop(flag, 0):
+    on, mine = _settings(variants[variant], flag)
+    if not on:
         return None
     for other, entry in variants.items():
-        theirs = dict((entry or {}).get("args") or {})
-        if other != variant and not theirs.get(flag) and theirs == args:
+        their_on, theirs = _settings(entry, flag)
+        if other != variant and not their_on and theirs == mine:
             return other
     return None
 
@@ -77,10 +89,12 @@ def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str
         for method, variant in routing_rows(grid):
             if task not in variant_targets(grid, grid["methods"][method]["variants"][variant] or {}):
                 continue
-            eps = _episodes(grid, done, method, variant, task, task)
+            agent = grid["methods"][method]["kind"] == "agent"
+            source = (learner_source(grid, task) if agent else None) or task   # a learner on a held-out route:
+            eps = _episodes(grid, done, method, variant, task, source)           # its cells on `route`
             if not eps:
                 continue
-            runs = [done[(method, variant, task, s)] for s in grid["seeds"] if (method, variant, task, s) in done]
+            runs = [done[(method, variant, source, s)] for s in grid["seeds"] if (method, variant, source, s) in done]
             per_seed = [[e for (s, _), e in sorted(eps.items()) if s == seed] for seed in sorted({s for s, _ in eps})]
             flat = [e for seed in per_seed for e in seed]
             row = {"method": method, "variant": variant, "task": task, "seeds": len(per_seed),
@@ -95,8 +109,12 @@ def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str
                               for why in ("wrong side", "stalled", "improving")},
                    "final_error": t_interval([np.mean([e["final_error"] for e in s]) for s in per_seed],
                                              (0.0, float("inf"))),
-                   "sim_evals": float(np.mean([r["sim_evals"] / len(r["episodes"]) for r in runs])),
-                   "s_per_move": float(np.mean([r["plan_s_per_step"] for r in runs])),
+                   "sim_evals": (float(np.mean([r["sim_evals"] / len(r["episodes"]) for r in runs]))
+                                 if runs and all("sim_evals" in r for r in runs) else float("nan")),
+                   "s_per_move": (float(np.mean([r["plan_s_per_step"] for r in runs]))
+                                  if runs and all("plan_s_per_step" in r for r in runs) else float("nan")),
+                   "env_steps": (float(np.mean([r["env_steps"] for r in runs])) if agent and runs
+                                 and all("env_steps" in r for r in runs) else float("nan")),
                    "partner": partner(grid, method, variant, "pin"),
                    "escape_partner": partner(grid, method, variant, "escape"),
                    "escapes": sum(e.get("escape_moves", 0) > 0 for e in flat)}
@@ -107,13 +125,23 @@ def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str
             for name, other in against.items():
                 if other is None:
                     continue
-                pr, unverified, mismatched = pairs(eps, _episodes(grid, done, *other, task, task))
+                other_source = (learner_source(grid, task) if grid["methods"][other[0]]["kind"] == "agent"
+                                else None) or task
+                pr, unverified, mismatched = pairs(eps, _episodes(grid, done, *other, task, other_source))
                 if pr:
                     ds, dm = paired_differences(pr)
                     row[name] = {"ds": ds, "dm": dm, "pairs": len(pr), "unverified": unverified,
                                  "mismatched": mismatched}
             out.append(row)
     return out
+
+
+def _cost(r: dict[str, Any]) -> str:
+    """A row's cost column: a planner's simulated moves per episode; a learner's training env steps (its acting
+    simulates nothing but the episode itself)."""
+    if not np.isnan(r["sim_evals"]):
+        return f"{r['sim_evals']:.0f}"
+    return f"trained {r['env_steps'] / 1000:.0f}k env steps" if not np.isnan(r.get("env_steps", float("nan"))) else "—"
 
 
 def _paired(p: dict[str, Any]) -> list[str]:
@@ -149,7 +177,7 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
             f"{fmt_ci(*r['success'])}; {fmt_ci(*r['success_wilson'])}", moves,
             f"{r['wrong_side']} of {r['episodes']}", " / ".join(str(n) for n in r["misses"].values()),
             fmt_ci(*r["final_error"], scale=100.0),
-            f"{r['sim_evals']:.0f}", f"{r['s_per_move']:.2f}", *pin]) + " |")
+            _cost(r), "—" if np.isnan(r["s_per_move"]) else f"{r['s_per_move']:.2f}", *pin]) + " |")
     lines.append("")
     versus = [r for r in data if "vs_cem" in r]
     if versus:

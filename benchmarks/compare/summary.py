@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .costs import acting_sim_evals
-from .grid import main_rows, method_label, variant_targets
+from .grid import learner_source, main_rows, method_label, variant_targets
 from .stats import t_interval
 
 PAIR_TOL = 1e-6          # m: two episodes with start errors this close (and the same target) are the same episode
@@ -26,24 +26,24 @@ def heldout_source(grid: dict[str, Any]) -> str:
 
 def task_source(grid: dict[str, Any], method: str, variant: str, task: str) -> str | None:
     """The task whose cells hold a row's episodes on ``task``, or None where the row does not run there: a learner
-    on a held-out shape is evaluated there by its cells trained on ``heldout_source`` (if its variant evaluates the
-    held-out shapes, ``eval_targets``); every other row by its own cells on the task."""
+    on a held-out shape (route) is evaluated there by its cells trained on ``learner_source`` (if its variant
+    evaluates the held-out targets, ``eval_targets``); every other row by its own cells on the task."""
     spec = grid["methods"][method]
     v = spec["variants"][variant]
     targets = variant_targets(grid, v)
-    if task in grid.get("heldout", {}) and spec["kind"] == "agent":
-        source = heldout_source(grid)
+    source = learner_source(grid, task) if spec["kind"] == "agent" else None
+    if source is not None:
         return source if source in targets and "eval_targets" in (v.get("set") or {}) else None
     return task if task in targets else None
 
 
 def _episodes(grid: dict[str, Any], done: dict[tuple, dict], method: str, variant: str, task: str,
               trained_on: str) -> dict[tuple[int, int], dict]:
-    """(seed, episode) -> episode record of one row on one task (a learner on a held-out shape: its evaluation
-    there after training on ``trained_on``)."""
+    """(seed, episode) -> episode record of one row on one task (a learner on a held-out shape or route: its
+    evaluation there after training on ``trained_on``)."""
     out = {}
     for seed in grid["seeds"]:
-        held = task in grid.get("heldout", {}) and grid["methods"][method]["kind"] == "agent"
+        held = learner_source(grid, task) is not None and grid["methods"][method]["kind"] == "agent"
         res = done.get((method, variant, trained_on if held else task, seed))
         if res is None:
             continue

@@ -139,10 +139,11 @@ class BatchedShapeControl:
         return self._state.clone(generators)
 
     def set_state(self, state: EnvState | None = None, *, pos: Any = None, target: Any = None,
-                  steps: Any = None) -> None:
-        """Write a state (from ``get_state``), or overwrite only ropes (B, N, 2), targets ((N, 2) or (B, N, 2)) and/or
-        step counters (B,) of the current one; the per-rope figures (info) are recomputed from the ropes and
-        targets. The env's only way in: planners and tests place ropes with it."""
+                  steps: Any = None, pegs: Any = None) -> None:
+        """Write a state (from ``get_state``), or overwrite only ropes (B, N, 2), targets ((N, 2) or (B, N, 2)),
+        step counters (B,) and/or a route's pegs ((K, 3) or (B, K, 3), K = max_pegs, rows of zeros: no peg) of the
+        current one; the per-rope figures (info) are recomputed from the ropes, targets and pegs. The env's only way
+        in: planners and tests place ropes with it."""
         kw = dict(device=self.device, dtype=self.dtype)
         if state is not None and state.rngs is None:
             raise ValueError("this state was read with get_state(generators=False): it has no generators to write "
@@ -156,6 +157,14 @@ class BatchedShapeControl:
             s.target_names = [task.CUSTOM] * b
         if steps is not None:
             s.steps = torch.as_tensor(steps, dtype=torch.int64, device=self.device).expand(b).clone()
+        if pegs is not None:
+            if not self.route:
+                raise ValueError("pegs: this env's target is not a route (it has no pegs to overwrite)")
+            pegs = torch.as_tensor(pegs, **kw).detach()
+            if pegs.shape[-2:] != (self.max_pegs, 3) or not torch.isfinite(pegs).all() or bool((pegs[..., 2] < 0).any()):
+                raise ValueError(f"pegs must be finite ({self.max_pegs}, 3) or ({b}, {self.max_pegs}, 3) rows of (x, y, "
+                                 f"radius >= 0), got shape {tuple(pegs.shape)}")
+            s.pegs = pegs.expand(b, self.max_pegs, 3).clone()
         s.pos, s.target = s.pos.to(**kw), s.target.to(**kw)
         self.sim._check_state("pos", s.pos)
         if target is not None:

@@ -14,7 +14,7 @@ import torch
 from .. import task
 from ..utils.checks import check_fields, option
 from ..params import CableParams, load_params
-from ..rewards import BOARD_REWARDS, REWARDS
+from ..rewards import BOARD_REWARDS, PEG_REWARDS, REWARDS
 from ..routing import ROUTE_STARTS
 from ..shapes import CURVE_MAX_TURN_DEG, random_curve
 from ..task import ACTION_TYPES, EXIT_RULES, OBS_TYPES
@@ -206,6 +206,9 @@ class EnvOptions:
         task.resolve_target(self.target, p)         # a bad target is named here, before any simulator is built
         if task.is_route(self.target):
             self._check_route()
+        elif self.reward in PEG_REWARDS:
+            raise ValueError(f"reward={self.reward!r} scores the sides a rope passes pegs on: it needs a route "
+                             f"(target 'route' or 'route:NAME'), got target={self.target!r}")
         return dataclasses.replace(
             self, params=p, action_scale=p.action_scale, max_steps=int(limit),
             success_tol=float(p.success_tol if self.success_tol is None else self.success_tol),
