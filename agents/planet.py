@@ -47,7 +47,7 @@ from agents.models.latent import LatentWorldModel, check_latent_settings
 from agents.models.rssm import RSSM, LatentPlanner
 from diffdlo.utils.checks import check_fields, option
 from diffdlo.params import CableParams
-from diffdlo.task import COORDINATE_OBS, POINT_OBS, is_route
+from diffdlo.task import COORDINATE_OBS, POINT_OBS
 
 
 MODELS = ("ensemble", "latent", "rssm")
@@ -132,15 +132,10 @@ class PlaNetConfig:
         self.task.check()
         self.run.check()
         if self.model in ("ensemble", "latent"):
-            actions = ("node", "node_pin") if self.model == "ensemble" else ("node",)
-            if self.task.obs not in POINT_OBS or self.task.action not in actions:
+            if self.task.obs not in POINT_OBS or self.task.action not in ("node", "node_pin"):
                 raise ValueError(f"model {self.model!r} predicts node positions from node actions: it needs obs "
-                                 f"'points' or 'perceived' and action {' or '.join(map(repr, actions))}, got obs "
+                                 f"'points' or 'perceived' and action 'node' or 'node_pin', got obs "
                                  f"{self.task.obs!r} and action {self.task.action!r} (use --preset rssm)")
-        if self.model == "latent" and is_route(self.task.target):
-            raise ValueError(f"model 'latent' does not take pegs (its keypoint latent has no place for them): target "
-                             f"{self.task.target!r} is a route; use model 'ensemble' (the PETS-style model takes "
-                             "the pegs in its grasp frame)")
         if self.model == "ensemble":
             check_settings(self.members, self.model_hidden, self.augment, self.frame, self.propagation)
         if self.model == "latent":
@@ -163,13 +158,15 @@ class PlaNetConfig:
 
 # ====================================================================== the world model and its planner
 def build_model(cfg: PlaNetConfig, obs: Any, action_dim: int, p: CableParams) -> WorldModel:
-    if cfg.model == "ensemble":           # among pegs: the observation's peg slots; node_pin actions: the held node
-        max_pegs = obs["pegs"].shape[-2] if isinstance(obs, dict) and "pegs" in obs else 0
+    # among pegs: the observation's peg slots; node_pin actions: the held node
+    max_pegs = obs["pegs"].shape[-2] if isinstance(obs, dict) and "pegs" in obs else 0
+    pin = cfg.task.action == "node_pin"
+    if cfg.model == "ensemble":
         return EnsembleDynamics(p, cfg.members, cfg.model_hidden, cfg.augment, cfg.frame, max_pegs,
-                                pin=cfg.task.action == "node_pin").to(cfg.run.device)
+                                pin=pin).to(cfg.run.device)
     if cfg.model == "latent":
         return LatentWorldModel(p, cfg.latent_dim, cfg.latent_hidden, cfg.augment, cfg.frame, cfg.residual_decoder,
-                                cfg.consistency, cfg.rho, cfg.latent_kind).to(cfg.run.device)
+                                cfg.consistency, cfg.rho, cfg.latent_kind, max_pegs, pin).to(cfg.run.device)
     return RSSM(obs, action_dim, action_type=cfg.task.action, n_nodes=p.n_nodes, scale=1.0 / p.length,
                 deter=cfg.deter, stoch=cfg.stoch, hidden=cfg.hidden, embed=cfg.embed,
                 cnn_channels=cfg.cnn_channels, image_embed=cfg.image_embed, deconv_channels=cfg.deconv_channels,

@@ -216,7 +216,8 @@ def test_model_error_study_records_every_move_and_a_perfect_predictor_misses_not
     # the simulator as the predictor: the moves are predicted exactly, so the bookkeeping is right
     sim = Simulator(task.cable_params(), dtype=torch.float64)
     exact = model_error.closed_loop_moves(runs[name], episodes=3, seed=5,
-                                          predict=lambda rope, node, drag: sim.move(rope.double(), node, drag.double()))
+                                          predict=lambda rope, node, drag, pegs, pin: sim.move(rope.double(), node,
+                                                                                               drag.double()))
     assert [m["error_before"] for m in exact["moves"]] == [m["error_before"] for m in res["moves"]]
     assert max(m["miss_worst"] for m in exact["moves"]) < 1e-5
     assert all(abs(m["predicted_error_after"] - m["error_after"]) < 1e-5 for m in exact["moves"])

@@ -23,6 +23,10 @@ Why not PlaNet's RSSM as it is: it predicts one move at 1.24 cm where "nothing m
   observed rope plus the decoded change, so the autoencoder's own error cancels (the RSSM's change-of-the-rope
   decoder was its one option that helped, 1.24 -> 0.86 cm).
 - **The simulator's symmetries** as data (``augment``: mirror, reverse; ``ensemble.symmetry_transform``).
+- **Among pegs** (``max_pegs`` > 0, a route; issue 60) the dynamics also take every peg slot (x, y, radius) in the
+  frame the move is stepped in (keypoints: the move's own grasp frame; vector: the first move's), so the frame
+  carries the pegs with the rope and the symmetries stay exact; with the second gripper (``pin``) the held node
+  one-hot (N + 1, the first: none). The encoder and decoder see the rope alone: the pegs do not move.
 
 Loss per chunk of L moves (all in the frame of the chunk's first move, in units of the largest drag), each step's
 term weighted rho^t (TD-MPC2's horizon discount, 0.5):
@@ -46,7 +50,7 @@ import torch.nn.functional as F
 from agents.models.ensemble import symmetry_transform
 from agents.models.networks import mlp
 from diffdlo.params import CableParams
-from diffdlo.task import decode_node_action
+from diffdlo.task import decode_node_action, decode_pin
 
 FRAMES = ("grasp", "centroid")
 KINDS = ("vector", "keypoints")
@@ -137,22 +141,25 @@ class LatentWorldModel(nn.Module):
 
     def __init__(self, p: CableParams, latent: int = 128, hidden: Sequence[int] = (256, 256),
                  augment: Sequence[str] = ("mirror", "reverse"), frame: str = "grasp", residual_decoder: bool = True,
-                 consistency: float = 1.0, rho: float = 0.5, kind: str = "vector"):
+                 consistency: float = 1.0, rho: float = 0.5, kind: str = "vector", max_pegs: int = 0,
+                 pin: bool = False):
         super().__init__()
         check_latent_settings(latent, hidden, augment, frame, kind)
         self.kind = kind
+        self.max_pegs, self.pin = int(max_pegs), bool(pin)
         self.p, self.N = p, p.n_nodes
         self.length, self.scale = float(p.length), float(p.action_scale)
         self.frame, self.augment = frame, tuple(augment)
         self.residual_decoder, self.consistency, self.rho = bool(residual_decoder), float(consistency), float(rho)
         self.latent = int(latent)
         self.encoder = mlp(2 * self.N, list(hidden), self.latent, nn.ELU)
+        board = 3 * self.max_pegs + (self.N + 1 if self.pin else 0)       # the pegs in the frame, the held node
         if kind == "keypoints":
             self.K = self.latent // 2
-            self.dynamics = mlp(self.latent + self.N + 1, list(hidden), self.latent, nn.ELU)
+            self.dynamics = mlp(self.latent + self.N + 1 + board, list(hidden), self.latent, nn.ELU)
             self.mixing = nn.Parameter(torch.randn(self.N, self.K) / self.K ** 0.5)    # D: affine mix of keypoints
         else:
-            self.dynamics = mlp(self.latent + self.N + 2, list(hidden), self.latent, nn.ELU)
+            self.dynamics = mlp(self.latent + self.N + 2 + board, list(hidden), self.latent, nn.ELU)
             self.decoder = mlp(self.latent, list(hidden), 2 * self.N, nn.ELU)
 
     # ------------------------------------------------------------------ pieces
@@ -168,8 +175,34 @@ class LatentWorldModel(nn.Module):
             return torch.einsum("nk,...kd->...nd", w, z.unflatten(-1, (self.K, 2))) * self.length
         return self.decoder(z).unflatten(-1, (self.N, 2)) * self.length
 
-    def step(self, z: torch.Tensor, node: torch.Tensor, drag_in_frame: torch.Tensor) -> torch.Tensor:
-        """One move in latent space: z (B, latent), node (B,) int64, drag in the frame [m] (B, 2)."""
+    def _board(self, pegs_in_frame: torch.Tensor | None, pin: torch.Tensor | None, like: torch.Tensor,
+                 move: Frame | None = None) -> list[torch.Tensor]:
+        """The dynamics' extra inputs: the pegs (B, K, 3) given in the rollout's frame [m] (taken further into a
+        move's own frame ``move``, whose points are in rope lengths), in rope lengths, empty slots zeros; the held
+        node one-hot."""
+        extra = []
+        if self.max_pegs:
+            if pegs_in_frame is None or pegs_in_frame.shape[-2] != self.max_pegs:
+                raise ValueError(f"this model takes {self.max_pegs} peg slots, got "
+                                 f"{None if pegs_in_frame is None else tuple(pegs_in_frame.shape)}")
+            centres = pegs_in_frame[..., :2] / self.length
+            if move is not None:
+                centres = move.points_in(centres)
+            present = (pegs_in_frame[..., 2:] > 0).to(like.dtype)
+            extra.append(torch.cat([centres * present, pegs_in_frame[..., 2:] / self.length], -1).flatten(-2))
+        elif pegs_in_frame is not None:
+            raise ValueError("this model was built without pegs (max_pegs 0): it cannot predict a move among them")
+        if self.pin:
+            pin = torch.full(like.shape[:1], -1, dtype=torch.int64, device=like.device) if pin is None else pin
+            extra.append(F.one_hot(pin + 1, self.N + 1).to(like.dtype))
+        elif pin is not None:
+            raise ValueError("this model was built without the second gripper (pin False)")
+        return extra
+
+    def step(self, z: torch.Tensor, node: torch.Tensor, drag_in_frame: torch.Tensor,
+             pegs_in_frame: torch.Tensor | None = None, pin: torch.Tensor | None = None) -> torch.Tensor:
+        """One move in latent space: z (B, latent), node (B,) int64, drag in the frame [m] (B, 2); among pegs, the
+        pegs (B, K, 3) in the frame [m] and the held node (B,) (-1: none)."""
         onehot = F.one_hot(node, self.N).to(z.dtype)
         if self.kind == "keypoints":                      # in this move's own grasp frame
             pts = z.unflatten(-1, (self.K, 2))
@@ -177,36 +210,47 @@ class LatentWorldModel(nn.Module):
             move = Frame.of(torch.cat([grasped, pts], -2), torch.zeros_like(node), drag_in_frame, "grasp")
             local = move.points_in(pts)
             dist = drag_in_frame.norm(dim=-1, keepdim=True) / self.scale
-            d = self.dynamics(torch.cat([local.flatten(-2), onehot, dist], -1)).unflatten(-1, (self.K, 2))
+            board = self._board(pegs_in_frame, pin, z, move)
+            d = self.dynamics(torch.cat([local.flatten(-2), onehot, dist, *board], -1)).unflatten(-1, (self.K, 2))
             return z + Frame.rotate_out(d, move.c, move.s).flatten(-2)
-        a = torch.cat([onehot, drag_in_frame / self.scale], -1)
+        a = torch.cat([onehot, drag_in_frame / self.scale, *self._board(pegs_in_frame, pin, z)], -1)
         return z + self.dynamics(torch.cat([z, a], -1))
 
     def rollout_in_frame(self, x0: torch.Tensor, node: torch.Tensor, drag: torch.Tensor,
+                         pegs: torch.Tensor | None = None, pin: torch.Tensor | None = None,
                          ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """From the rope x0 (B, N, 2) in the frame, H moves (node (B, H), drags in the frame (B, H, 2)): the decoded
-        ropes in the frame and the latents, H each."""
+        """From the rope x0 (B, N, 2) in the frame, H moves (node (B, H), drags in the frame (B, H, 2); among
+        ``pegs`` (B, K, 3) in the frame, with ``pin`` (B, H) held): the decoded ropes in the frame and the latents, H
+        each."""
         z = self.encode(x0)
         base = x0 - self.decode(z) if self.residual_decoder else 0.0
         ropes, latents = [], []
         for t in range(node.shape[1]):
-            z = self.step(z, node[:, t], drag[:, t])
+            z = self.step(z, node[:, t], drag[:, t], pegs, None if pin is None else pin[:, t])
             ropes.append(base + self.decode(z))
             latents.append(z)
         return ropes, latents
 
     # ------------------------------------------------------------------ prediction (world frame)
     def rollout(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor,
-                propagation: str = "mean") -> list[torch.Tensor]:
-        """The ropes after each of H moves from ``rope`` (B, N, 2) under node (B, H) and drag (B, H, 2) [m], in
-        the world frame: H tensors (B, N, 2). One model: ``propagation`` is accepted and has nothing to choose."""
+                propagation: str = "mean", pegs: torch.Tensor | None = None,
+                pin: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """The ropes after each of H moves from ``rope`` (B, N, 2) under node (B, H) and drag (B, H, 2) [m] (among
+        ``pegs`` (B, K, 3), with ``pin`` (B, H) held), in the world frame: H tensors (B, N, 2). One model:
+        ``propagation`` is accepted and has nothing to choose."""
         fr = Frame.of(rope, node[:, 0], drag[:, 0], self.frame)
-        ropes, _ = self.rollout_in_frame(fr.points_in(rope), node, fr.vectors_in(drag))
+        ropes, _ = self.rollout_in_frame(fr.points_in(rope), node, fr.vectors_in(drag), self._pegs_in(fr, pegs), pin)
         return [fr.points_out(x) for x in ropes]
 
-    def predict(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor) -> torch.Tensor:
+    @staticmethod
+    def _pegs_in(fr: Frame, pegs: torch.Tensor | None) -> torch.Tensor | None:
+        """Pegs (B, [T,] K, 3) into the frame: centres moved, radii kept."""
+        return None if pegs is None else torch.cat([fr.points_in(pegs[..., :2]), pegs[..., 2:]], -1)
+
+    def predict(self, rope: torch.Tensor, node: torch.Tensor, drag: torch.Tensor, pegs: torch.Tensor | None = None,
+                pin: torch.Tensor | None = None) -> torch.Tensor:
         """(B, H, N, 2): the ropes after each move, world frame."""
-        return torch.stack(self.rollout(rope, node, drag), 1)
+        return torch.stack(self.rollout(rope, node, drag, pegs=pegs, pin=pin), 1)
 
     # ------------------------------------------------------------------ training
     def loss(self, obs: dict[str, torch.Tensor], actions: torch.Tensor, rewards: torch.Tensor | None = None,
@@ -218,12 +262,17 @@ class LatentWorldModel(nn.Module):
         rope = obs["node_poses"].to(dtype)
         b, L = actions.shape[:2]
         mask = torch.ones(b, L + 1, device=rope.device, dtype=dtype) if mask is None else mask.to(dtype)
-        node, drag = decode_node_action(actions.to(dtype), self.p)
+        node, drag = decode_node_action(actions[..., :3].to(dtype), self.p)
+        pegs = obs["pegs"].to(dtype)[:, 0] if self.max_pegs else None         # a chunk is one episode: one board
+        pin = decode_pin(actions[..., 3].to(dtype), node, self.N) if self.pin else None
         if self.training:
-            rope, node, drag = symmetry_transform(rope, node, drag, self.augment)[:3]
+            peg_rows = None if pegs is None else pegs[:, None]
+            rope, node, drag, peg_rows, pin = symmetry_transform(rope, node, drag, self.augment, peg_rows, pin)
+            pegs = None if peg_rows is None else peg_rows[:, 0]
         fr = Frame.of(rope[:, 0], node[:, 0], drag[:, 0], self.frame)
         x = fr.points_in(rope)                                       # (B, L+1, N, 2) in the first move's frame
         drag = fr.vectors_in(drag)
+        pegs = self._pegs_in(fr, pegs)
         z_obs = self.encode(x)                                       # (B, L+1, latent)
         sq = lambda err: (err / self.scale).square().sum(-1).mean(-1)   # noqa: E731  (B, ...) per rope
         recon = (sq(self.decode(z_obs) - x) * mask).sum() / mask.sum().clamp_min(1)
@@ -232,7 +281,7 @@ class LatentWorldModel(nn.Module):
         pred = cons = weight = 0.0
         first_err = None
         for t in range(L):
-            z = self.step(z, node[:, t], drag[:, t])
+            z = self.step(z, node[:, t], drag[:, t], pegs, None if pin is None else pin[:, t])
             m = mask[:, t + 1]
             w = self.rho ** t
             err = base + self.decode(z) - x[:, t + 1]

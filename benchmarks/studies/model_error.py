@@ -13,6 +13,11 @@ Per bucket (median over the moves): the one-move prediction error (mean and wors
 the rope's place), the true move's size (mean node displacement), their ratio, and the mean shape error after the
 move as the model predicted it and as it happened. With several runs of one model (e.g. its five seeds) a pooled
 table follows. Prints the tables; writes <out>/results.json and <out>/model_error.png when --out is given.
+
+Among pegs (a run on a route, issue 60) the model predicts each move with the board's pegs and the held node as its
+planner does, the errors are on the board (no centroid alignment), and a second table splits the prediction error by
+each node's true distance to the nearest peg's surface (under NEAR_PEG, 2 cm: in or about to be in contact; farther):
+a model that cannot represent contact shows it there.
 """
 from __future__ import annotations
 
@@ -23,9 +28,11 @@ from typing import Any, Callable
 
 import torch
 
+from agents.models.ensemble import NEAR_PEG, peg_clearance
 from agents.tools.policy import load_policy
 from diffdlo.rewards import node_errors
-from diffdlo.task import decode_node_action
+from diffdlo.routing import route_errors
+from diffdlo.task import decode_node_action, decode_pin
 from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic
 
 MODEL_NAMES = {"ensemble": "PETS-style ensemble", "latent": "latent world model"}
@@ -39,8 +46,10 @@ def closed_loop_moves(run_dir: Path | str, episodes: int = 20, seed: int | None 
                       ) -> dict[str, Any]:
     """Run the run's planner for ``episodes`` episodes (one wave) and return one record per move: the mean error
     before and after it, the predicted rope's shape error after it, the prediction's mean and worst node distance
-    to the true rope, and the true move's mean node displacement [m]. ``predict(rope (B, N, 2), node (B,), drag
-    (B, 2)) -> (B, N, 2)`` is the prediction checked (default: the run's model, as its planner uses it)."""
+    to the true rope, and the true move's mean node displacement [m] (among pegs also the prediction's mean error
+    over the nodes within NEAR_PEG of a peg and over the others, None where there are none). ``predict(rope
+    (B, N, 2), node (B,), drag (B, 2), pegs (B, K, 3) or None, pin (B,) or None) -> (B, N, 2)`` is the prediction
+    checked (default: the run's model, as its planner uses it)."""
     policy = load_policy(run_dir)
     if policy.algo != "planet" or policy.config.model not in ("ensemble", "latent"):
         what = policy.algo if policy.algo != "planet" else f"planet with model {policy.config.model!r}"
@@ -51,31 +60,57 @@ def closed_loop_moves(run_dir: Path | str, episodes: int = 20, seed: int | None 
     p = env.core.params
     if predict is None:
         model = planner.model
-        predict = lambda rope, node, drag: model.predict(rope, node[:, None], drag[:, None])[:, 0]   # noqa: E731
+
+        def predict(rope, node, drag, pegs, pin):
+            board = {} if pegs is None else {"pegs": pegs}
+            if pin is not None:
+                board["pin"] = pin[:, None]
+            return model.predict(rope, node[:, None], drag[:, None], **board)[:, 0]
     obs = env.reset(seed=policy.config.run.eval_seed if seed is None else seed)
     active = torch.ones(episodes, dtype=torch.bool)
     moves = []
     while bool(active.any()):
         state = env.core.get_state(generators=False)
         rope, target = state.pos.float().cpu(), state.target.float().cpu()
-        action = planner(obs, True)
-        node, drag = decode_node_action(action.float().cpu(), p)
-        predicted = predict(rope, node, drag).float()
+        pegs = None if state.pegs is None else state.pegs.float().cpu()
+        action = planner(obs, True).float().cpu()
+        node, drag = decode_node_action(action[:, :3], p)
+        pin = decode_pin(action[:, 3], node, p.n_nodes) if action.shape[-1] == 4 else None
+        predicted = predict(rope, node, drag, pegs, pin).float()
         obs, _, term, trunc, _ = env.core.step(action.to(env.core.device), mask=active)
         obs = env.to_learner(obs)
         after = env.core.get_state(generators=False).pos.float().cpu()
         miss = (predicted - after).norm(dim=-1)
-        before_err, after_err = node_errors(rope, target).mean(-1), node_errors(after, target).mean(-1)
-        predicted_err = node_errors(predicted, target).mean(-1)
+        errors = node_errors if pegs is None else route_errors       # a route: on the board
+        before_err, after_err = errors(rope, target).mean(-1), errors(after, target).mean(-1)
+        predicted_err = errors(predicted, target).mean(-1)
         size = (after - rope).norm(dim=-1).mean(-1)
+        near = None if pegs is None else peg_clearance(after, pegs) < NEAR_PEG
         for i in active.nonzero().flatten().tolist():
             moves.append({"episode": i, "error_before": float(before_err[i]), "error_after": float(after_err[i]),
                           "predicted_error_after": float(predicted_err[i]), "miss_mean": float(miss[i].mean()),
                           "miss_worst": float(miss[i].max()), "move_size": float(size[i])})
+            if near is not None:
+                moves[-1].update(
+                    miss_near=float(miss[i][near[i]].mean()) if bool(near[i].any()) else None,
+                    miss_far=float(miss[i][~near[i]].mean()) if bool((~near[i]).any()) else None)
         active &= ~(term | trunc).cpu()
     return {"run": str(run_dir), "model": policy.config.model, "episodes": episodes,
             "success_tol": env.core.success_tol, "success_worst_tol": env.core.success_worst_tol,
-            "moves": moves, "buckets": bucket_rows(moves)}
+            "moves": moves, "buckets": bucket_rows(moves), "near_pegs": peg_split(moves)}
+
+
+def peg_split(moves: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Among pegs: the prediction error of the nodes within NEAR_PEG of a peg and of the others (medians over the
+    moves that have such nodes, and their count); None off routes."""
+    if not moves or "miss_near" not in moves[0]:
+        return None
+
+    def median(key: str) -> tuple[float, int]:
+        xs = [m[key] for m in moves if m.get(key) is not None]
+        return (float(torch.tensor(xs, dtype=torch.float64).median()) if xs else float("nan")), len(xs)
+    (near, n_near), (far, n_far) = median("miss_near"), median("miss_far")
+    return {"near_peg": near, "moves_near": n_near, "far": far, "moves_far": n_far, "near_within_m": NEAR_PEG}
 
 
 def bucket_rows(moves: list[dict[str, float]]) -> list[dict[str, Any]]:
@@ -109,7 +144,7 @@ def pooled(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
             moves = [m for res in group for m in res["moves"]]
             out.append({"run": f"pooled: {len(group)} runs", "model": model, "success_tol": tol,
                         "success_worst_tol": worst, "episodes": sum(r["episodes"] for r in group), "moves": moves,
-                        "buckets": bucket_rows(moves)})
+                        "buckets": bucket_rows(moves), "near_pegs": peg_split(moves)})
     return out
 
 
@@ -126,6 +161,13 @@ def table(res: dict[str, Any]) -> str:
         lines.append(f"| {r['bucket']} | {r['moves']} | {r['miss_mean'] * mm:.2f} | {r['miss_worst'] * mm:.2f} | "
                      f"{r['move_size'] * mm:.1f} | {r['miss_relative']:.2f} | "
                      f"{r['predicted_error_after'] * mm:.1f} / {r['error_after'] * mm:.1f} |")
+    split = res.get("near_pegs")
+    if split:
+        lines += ["", "| nodes (true position) | moves | prediction error, mean node [mm] (median over moves) |",
+                  "|---|---|---|",
+                  f"| within {split['near_within_m'] * 100:g} cm of a peg | {split['moves_near']} | "
+                  f"{split['near_peg'] * mm:.2f} |",
+                  f"| farther | {split['moves_far']} | {split['far'] * mm:.2f} |"]
     return "\n".join(lines)
 
 
