@@ -92,7 +92,11 @@ def write_predictions(out: Path, cable: int, ids: list[str], pred: torch.Tensor)
                 np.savez_compressed(f, positions=pred[i].numpy().astype(np.float32))
 
 
-def plot_errors(cables: dict, path: Path) -> None:
+def plot_errors(cables: dict, path: Path, label: str = "chain (fitted)",
+                extra: tuple[str, str] | None = None) -> None:
+    """The error over time per cable: ``cables[name]["ours"]`` as ``label`` (and ``extra``: (key, label) of a
+    second result of the same cable, e.g. the physics-only one beside the residual's), the frozen baseline and the
+    paper's DER and DEFORM means."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -101,7 +105,9 @@ def plot_errors(cables: dict, path: Path) -> None:
     for ax, (name, c) in zip(axes[0], cables.items()):
         t = [(2 + i) * deform.DT for i in range(len(c["ours"]["per_frame_m"]))]
         ax.plot(t, [100 * e for e in c["frozen"]["per_frame_m"]], color="grey", lw=1, label="frozen")
-        ax.plot(t, [100 * e for e in c["ours"]["per_frame_m"]], color="C1", lw=1.2, label="chain (fitted)")
+        if extra is not None:
+            ax.plot(t, [100 * e for e in c[extra[0]]["per_frame_m"]], color="C4", lw=1, label=extra[1])
+        ax.plot(t, [100 * e for e in c["ours"]["per_frame_m"]], color="C1", lw=1.2, label=label)
         k = int(name[3:]) - 1
         ax.axhline(PAPER_CM["DER"][k], color="C0", ls="--", lw=0.8, label="DER (paper, mean)")
         ax.axhline(PAPER_CM["DEFORM"][k], color="C2", ls=":", lw=0.8, label="DEFORM (paper, mean)")

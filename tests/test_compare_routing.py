@@ -18,7 +18,7 @@ ROUTE_ROWS = ([("greedy", v) for v in ("route", "route_pin")]
               + [(m, v) for m in ("cem", "gradient")
                  for v in ("route", "route_pin", "route_escape", "route_pin_escape")])
 LEARNER_ROUTE_ROWS = [("ppo", "route"), ("ppo", "route_pin"), ("ppo", "route_rollouts"), ("pets", "route"),
-                      ("pets", "route_pin"), ("apg", "route")]
+                      ("pets", "route_pin"), ("latent", "route"), ("latent", "route_pin"), ("apg", "route")]
 
 
 def test_only_the_route_rows_run_the_routing_tasks_each_on_its_env_target():
@@ -68,7 +68,7 @@ def test_a_pin_or_escape_row_is_paired_with_the_row_that_differs_from_it_by_that
         assert partner(grid, method, "route_pin_escape", "escape") == "route_pin"
         assert partner(grid, method, "route_pin_escape", "pin") == "route_escape"
         assert partner(grid, method, "route_pin", "escape") is None
-    for method in ("ppo", "pets"):                # a learner's pin: its action node_pin
+    for method in ("ppo", "pets", "latent"):      # a learner's pin: its action node_pin
         assert partner(grid, method, "route_pin") == "route"
     assert partner(grid, "ppo", "route_rollouts") is None
     grid = copy.deepcopy(grid)

@@ -313,7 +313,7 @@ def test_apg_among_pegs_moves_the_rope_with_the_pegs(tmp_path):
 def test_a_tiny_world_model_run_learns_to_route_a_u(tmp_path):
     """The PETS-style model among pegs from 1,200 env steps (10 random episodes, then planning through it) lays the
     rope round the two pegs of u_two_pegs (start beside the board, at most 40 moves) in most of 8 episodes, where
-    random moves never do. Run with: pytest -m slow tests/test_learners_routing.py (about a minute)."""
+    random moves never do. Run with: pytest -m slow tests/test_learners_routing.py (minutes)."""
     out = tmp_path / "u"
     assert planet.main(["--out", str(out), "--total-steps", "1200", "--num-envs", "8", "--max-steps", "40",
                         "--target", "route:u_two_pegs", "--set", "reward=route_gain", "--set", "seed_episodes=10",

@@ -239,3 +239,32 @@ def test_the_command_names_a_missing_split(tmp_path, capsys):
     with pytest.raises(SystemExit):
         real_cable.main(["--data", str(data), "--out", str(tmp_path / "o"), "--cables", "3", "--quick"])
     assert "DLO3" in capsys.readouterr().err
+
+
+def test_the_residual_command_trains_on_a_physics_run_and_reports_both(tmp_path, capsys):
+    """benchmarks.real_cable_residual: the physics values from a benchmarks.real_cable folder, the residual
+    trained and saved, both errors reported, predictions written; a --physics folder without a fit is named."""
+    from benchmarks import real_cable_residual
+    from diffdlo.real import residual
+    data, n = write_fake_dataset(tmp_path)
+    phys = tmp_path / "phys"
+    assert real_cable.main(["--data", str(data), "--out", str(phys), "--cables", "2", "--quick", "--no-progress",
+                            "--threads", "1"]) == 0
+    out = tmp_path / "resid"
+    assert real_cable_residual.main(["--data", str(data), "--physics", str(phys), "--out", str(out), "--cables", "2",
+                                     "--quick", "--no-progress", "--threads", "1"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    c = res["cables"]["DLO2"]
+    physics = json.loads((phys / "results.json").read_text())["cables"]["DLO2"]
+    assert c["physics_only"]["l1_m"] == pytest.approx(physics["ours"]["l1_m"], rel=1e-9)   # the same physics
+    assert math.isfinite(c["ours"]["l1_m"]) and c["training"]["validation_ids"]
+    assert set(c["training"]["validation_ids"]).isdisjoint(c["training"]["train_ids"])
+    net = residual.load(out / "DLO2_residual.pt")
+    assert net.config.n == n
+    with np.load(out / "predictions" / "DLO2" / "103.npz") as z:
+        assert z["positions"].shape == (22, n, 3)
+    assert "DLO2" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        real_cable_residual.main(["--data", str(data), "--physics", str(tmp_path), "--out", str(tmp_path / "o"),
+                                  "--cables", "2", "--quick"])
+    assert e.value.code == 2 and "holds no results.json" in capsys.readouterr().err

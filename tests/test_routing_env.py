@@ -16,7 +16,8 @@ from diffdlo.shapes import TargetError
 
 
 def test_the_routing_env_passes_gymnasiums_and_sb3s_checkers():
-    for kwargs in ({}, {"obs_type": "image"}, {"action_type": "node_pin", "target": "route:s_three_pegs"}):
+    for kwargs in ({}, {"obs_type": "image"}, {"action_type": "node_pin", "target": "route:s_three_pegs"},
+                   {"reward": "route_side_gain"}):
         env = gym.make(ROUTING_ENV_ID, **kwargs)
         check_env(env.unwrapped, skip_render_check=True)
     from stable_baselines3.common.env_checker import check_env as sb3_check
@@ -96,6 +97,8 @@ def test_a_pin_action_moves_the_rope_as_the_simulator_with_that_pin():
     ({"target": "route:zigzag_four", "reward": "route_gain", "max_pegs": 3}, routing.LayoutError,
      r"a layout of 4 pegs does not fit the env's max_pegs=3"),
     ({"target": "route", "reward": "route_gain", "max_pegs": 0}, ValueError, r"max_pegs"),
+    ({"target": "random", "reward": "route_side_gain"}, ValueError,
+     r"reward='route_side_gain' scores the sides a rope passes pegs on: it needs a route"),
 ])
 def test_bad_route_options_are_refused_by_name(kwargs, error, match):
     with pytest.raises(error, match=match):

@@ -155,9 +155,10 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
     if not data:
         return []
     lines = ["## Routing: the rope laid along a route among pegs", "",
-             "The planners on the routing task of docs/ROUTING.md: random boards (`route`: 2-4 pegs and a route drawn "
-             "per episode) and the two held-out layouts, each episode starting beside the board; at most the row's "
-             "max-steps moves. **Success**: the mean node error on the board (no centroid alignment: the pegs fix "
+             "The planners and the learners on the routing task of docs/ROUTING.md: random boards (`route`: 2-4 pegs "
+             "and a route drawn per episode) and the two held-out layouts, each episode starting beside the board; at "
+             "most the row's max-steps moves. A learner trains on random boards only: its rows on the held-out layouts "
+             "are its trained policy (or model) evaluated there, on the planners' episodes. **Success**: the mean node error on the board (no centroid alignment: the pegs fix "
              "where the route lies) under 1 cm AND every peg passed on the route's side (the winding test); "
              "t-interval over seeds, then Wilson over the pooled episodes. **Under 1 cm, a peg on the wrong side**: "
              "episodes that ended on the route but round a peg the wrong way (the distance alone would have called "

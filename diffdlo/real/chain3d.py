@@ -58,7 +58,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import torch
 
@@ -461,7 +461,8 @@ def _check_diverged(x: torch.Tensor, frame: int, frame_dt: float, substep: float
 
 def rollout(x0: torch.Tensor, v0: torch.Tensor | None, held_mask: torch.Tensor | None,
             held_path: torch.Tensor | None, params: ChainParams, substeps: int, *, frame_dt: float = FRAME_DT,
-            frames: int | None = None, return_velocities: bool = False
+            frames: int | None = None, return_velocities: bool = False,
+            accel: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
             ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Simulate T recorded frames of B chains; returns positions (T, B, N, 3) [m], frame 0 the start (with
     ``return_velocities`` also the velocities (T, B, N, 3) [m/s] at each frame, those of its last substep).
@@ -470,9 +471,12 @@ def rollout(x0: torch.Tensor, v0: torch.Tensor | None, held_mask: torch.Tensor |
     held_path: (T, B, H, 3) the H held nodes' positions at each frame [m]; between frames k and k + 1 they move
     linearly (velocity (P_{k+1} - P_k) / frame_dt) and sit exactly on P_{k+1} at its end; their entries of x0 and
     v0 are replaced by the path's (the velocity of its first frame). With nothing held, ``frames`` gives T.
-    ``substeps`` per frame of ``frame_dt`` [s]. Differentiable with respect to x0, v0, held_path and every tensor
-    of ``params``. Raises ChainError for bad inputs and ChainDivergedError, naming the frame, for a state that
-    becomes non-finite or runs away."""
+    ``substeps`` per frame of ``frame_dt`` [s]. ``accel(x, v) -> (B, N, 3)`` [m/s^2]: an extra acceleration (e.g. a
+    learned correction, diffdlo.real.residual), evaluated once per frame from the state at the frame's start (the
+    held nodes' velocity that of their path over the frame) and held over its substeps, added in the velocity update.
+    Differentiable with respect to x0, v0, held_path, every tensor of ``params`` (and accel's own parameters).
+    Raises ChainError for bad inputs and ChainDivergedError, naming the frame, for a state that becomes non-finite
+    or runs away."""
     held, n_frames = _check_rollout_inputs(x0, v0, held_mask, held_path, substeps, frame_dt, frames)
     batch, n = x0.shape[:2]
     params.check(batch, n)
@@ -497,8 +501,10 @@ def rollout(x0: torch.Tensor, v0: torch.Tensor | None, held_mask: torch.Tensor |
             start, end = place(held_path[k - 1]), place(held_path[k])
             v_held = (end - start) / frame_dt
             v = torch.where(is_held, v_held, v)
+        kick = None if accel is None else h * accel(x, v)
         for s in range(1, substeps + 1):
-            v = (v + (h / mass) * _forces(x, v, p, with_drag=False)) * damp
+            step = v + (h / mass) * _forces(x, v, p, with_drag=False)
+            v = (step if kick is None else step + kick) * damp
             x = x + h * v
             if held_path is not None:
                 alpha = s / substeps

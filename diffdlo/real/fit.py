@@ -204,26 +204,31 @@ def _bounds(bounds: Mapping[str, tuple[float, float]] | None) -> dict[str, tuple
 
 # ====================================================================== rollouts and the protocol
 def simulate(model: CableModel, values: Mapping[str, Any], x0: torch.Tensor, v0: torch.Tensor,
-             held_path: torch.Tensor, substeps: int | None = None) -> torch.Tensor:
+             held_path: torch.Tensor, substeps: int | None = None, accel: Any = None) -> torch.Tensor:
     """(T, B, n, 3) chain3d.rollout of B chains from (x0, v0) with the held markers on held_path (T, B, H, 3);
-    frame 0 is the start."""
+    frame 0 is the start. ``accel``: chain3d.rollout's extra acceleration (a learned correction)."""
     return chain3d.rollout(x0, v0, model.held_mask(), held_path, model.params(values), substeps or model.substeps,
-                           frame_dt=model.dt)
+                           frame_dt=model.dt, accel=accel)
 
 
-def predict(model: CableModel, values: Mapping[str, Any], recordings: Any, start: int = 1) -> torch.Tensor:
+def predict(model: CableModel, values: Mapping[str, Any], recordings: Any, start: int = 1, accel: Any = None,
+            dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """(B, T-start-1, n, 3): the open-loop prediction of frames start+1 .. T-1 of every recording, from frame
-    ``start`` and the velocity (x_start - x_{start-1}) / dt, the held markers set to the recording at every frame.
-    A batch that diverges is rerun one recording at a time with 2x, then 4x, the substeps (RuntimeError if it
-    still diverges)."""
+    ``start`` and the velocity (x_start - x_{start-1}) / dt, the held markers set to the recording at every frame,
+    in ``dtype`` (``accel``: an extra acceleration, ``simulate``'s). A batch that diverges is rerun one recording at a
+    time with 2x, then 4x, the substeps (ChainDivergedError if it still diverges)."""
     _, X = as_recordings(recordings)
-    if not 1 <= start <= X.shape[1] - 2:
-        raise FitError(f"start must be in [1, {X.shape[1] - 2}] for {X.shape[1]} frames, got {start!r}")
+    if isinstance(start, bool) or not isinstance(start, int) or not 1 <= start <= X.shape[1] - 2:
+        raise FitError(f"start must be an integer in [1, {X.shape[1] - 2}] for {X.shape[1]} frames, got {start!r}")
+    if dtype not in (torch.float32, torch.float64):
+        raise FitError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+    X = X.to(dtype)
     held = list(model.held)
 
     def run(Y: torch.Tensor, substeps: int) -> torch.Tensor:
         path = Y[:, start:, held].transpose(0, 1).contiguous()
-        out = simulate(model, values, Y[:, start], (Y[:, start] - Y[:, start - 1]) / model.dt, path, substeps)
+        out = simulate(model, values, Y[:, start], (Y[:, start] - Y[:, start - 1]) / model.dt, path, substeps,
+                       accel)
         return out[1:].transpose(0, 1)
 
     with torch.no_grad():
@@ -325,16 +330,17 @@ def _windows(X: torch.Tensor, count: int, window: int, gen: torch.Generator, fil
 
 
 def window_loss(model: CableModel, values: Mapping[str, Any], X: torch.Tensor, files: torch.Tensor,
-                starts: torch.Tensor, window: int) -> torch.Tensor:
+                starts: torch.Tensor, window: int, accel: Any = None) -> torch.Tensor:
     """Mean absolute error [m] of the free markers over ``window`` frames after each (file, start), the chain
-    started from the recorded frame and its finite-difference velocity, the held markers on the recording."""
+    started from the recorded frame and its finite-difference velocity, the held markers on the recording
+    (``accel``: an extra acceleration, ``simulate``'s)."""
     idx = starts.view(-1, 1) + torch.arange(window + 1).view(1, -1)              # (W, window+1)
     seg = X[files.view(-1, 1), idx]                                                # (W, window+1, n, 3)
     prev = X[files, starts - 1]
     held = list(model.held)
     free = [i for i in range(model.n) if i not in model.held]
     path = seg[:, :, held].transpose(0, 1).contiguous()
-    out = simulate(model, values, seg[:, 0], (seg[:, 0] - prev) / model.dt, path)
+    out = simulate(model, values, seg[:, 0], (seg[:, 0] - prev) / model.dt, path, accel=accel)
     return (out[1:, :, free] - seg[:, 1:, free].transpose(0, 1)).abs().mean()
 
 
