@@ -86,7 +86,8 @@ def test_grid_is_data_and_filters_work(tmp_path):
     arc = compare.build_cells(full, tmp_path, methods=["cem"], targets=["arc"], seeds=[0])[0]
     assert arc["argv"][arc["argv"].index("--target") + 1] == "planners/targets/arc.npy"
     assert {c["variant"] for c in cells if c["method"] == "sac"} == {"tuned", "tuned_image", "points", "points_utd1",
-                                                                          "image", "abs_diff", "delta_gain"}
+                                                                          "image", "abs_diff", "delta_gain", "route"}
+    assert not any(c["target"] in full["heldout_routes"] for c in cells if c["kind"] == "agent")   # nor on these
     # a planner's random cell is one command, episode i on env.reset(seed=eval_seed + i) as the learners'
     rnd, = compare.build_cells(full, tmp_path, methods=["cem"], variants=["default"], targets=["random"], seeds=[1])
     assert "&&" not in compare.command_line(rnd) and rnd["argv"][rnd["argv"].index("--target") + 1] == "random"

@@ -18,7 +18,7 @@ ROUTE_ROWS = ([("greedy", v) for v in ("route", "route_pin")]
               + [(m, v) for m in ("cem", "gradient")
                  for v in ("route", "route_pin", "route_escape", "route_pin_escape")])
 LEARNER_ROUTE_ROWS = [("ppo", "route"), ("ppo", "route_pin"), ("ppo", "route_rollouts"), ("pets", "route"),
-                      ("pets", "route_pin"), ("latent", "route"), ("latent", "route_pin"), ("apg", "route")]
+                      ("pets", "route_pin"), ("latent", "route"), ("latent", "route_pin"), ("sac", "route"), ("apg", "route")]
 
 
 def test_only_the_route_rows_run_the_routing_tasks_each_on_its_env_target():
@@ -192,3 +192,12 @@ def test_an_escape_row_is_paired_against_the_same_row_without_it():
     from benchmarks.compare.records import _episode
     assert _episode(dict(eps[3], errors=[0.3, 0.005]))["escape_moves"] == 3      # the records keep it
     assert "| cem | route_escape | route | 2 of 8 | +25 " in "\n".join(routing_section(grid, done))
+
+
+def test_a_learner_row_is_paired_against_cem_with_the_same_grippers():
+    from benchmarks.compare.routing import reference_variant
+    grid = load_grid()
+    assert reference_variant(grid, "pets", "route") == "route"
+    assert reference_variant(grid, "pets", "route_pin") == "route_pin"
+    assert reference_variant(grid, "ppo", "route_rollouts") == "route"          # no cem/route_rollouts: the plain row
+    assert reference_variant(grid, "cem", "route_escape") == "route_escape"

@@ -246,13 +246,14 @@ PPO_SMALL = ["--set", "hidden=[32,32]", "--set", "n_steps=16", "--set", "n_epoch
 
 def test_ppo_with_the_pin_on_routes_resumes_exactly_and_records_the_side_test(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
-    assert ppo.main(run_argv(a, 384, *PPO_SMALL)) == 0
-    assert ppo.main(run_argv(b, 256, *PPO_SMALL)) == 0
-    assert ppo.main(["--out", str(b), "--resume", "--total-steps", "384", "--no-progress"]) == 0
+    assert ppo.main(run_argv(a, 256, *PPO_SMALL)) == 0
+    assert ppo.main(run_argv(b, 128, *PPO_SMALL)) == 0
+    assert ppo.main(["--out", str(b), "--resume", "--total-steps", "256", "--no-progress"]) == 0
     for name in ("train.csv", "eval.csv", "rollout.csv"):
         assert (a / name).read_text() == (b / name).read_text(), name
     ra, rb = json.loads((a / "results.json").read_text()), json.loads((b / "results.json").read_text())
     assert ra["episodes"] == rb["episodes"] and ra["action"] == "node_pin"
+    assert ra["shapes"]["pegs"] == ra["episodes"][0]["pegs"]          # the gallery draws the first episode's board
     for e in ra["episodes"]:                       # each episode keeps its board and the side test
         assert isinstance(e["sides_kept"], bool) and 2 <= len(e["pegs"]) <= 4 and len(e["pegs"][0]) == 3
         assert not e["success"] or e["sides_kept"]

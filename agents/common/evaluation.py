@@ -144,8 +144,11 @@ def evaluate_heldout(policy: Callable[[Any, bool], torch.Tensor] | None, envs: d
 
 
 def first_shapes(result: dict[str, Any]) -> dict[str, list]:
-    """The first episode's start, final shape and target (results.json "shapes": the report's galleries)."""
-    return shapes_record(result["starts"][0], result["ropes"][0], result["targets"][0])
+    """The first episode's start, final shape and target, and on a route its pegs (results.json "shapes": the
+    report's galleries)."""
+    shapes = shapes_record(result["starts"][0], result["ropes"][0], result["targets"][0])
+    first = result["episodes"][0] if result.get("episodes") else {}
+    return dict(shapes, pegs=first["pegs"]) if "pegs" in first else shapes
 
 
 def eval_row(result: dict[str, Any]) -> dict[str, float]:

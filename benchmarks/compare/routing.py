@@ -81,6 +81,17 @@ def miss_reason(e: dict[str, Any]) -> str | None:
     return "improving"
 
 
+def reference_variant(grid: dict[str, Any], method: str, variant: str) -> str | None:
+    """The CEM row a routing row is paired against: CEM's variant of the same name, else (a learner's own variant,
+    e.g. ppo/route_rollouts) CEM's plain routing row with the same grippers (route, or route_pin with the pin)."""
+    cem = grid["methods"].get(REFERENCE, {}).get("variants", {})
+    if variant in cem:
+        return variant
+    with_pin = _settings(grid["methods"][method]["variants"][variant], "pin")[0]
+    fallback = "route_pin" if with_pin else "route"
+    return fallback if fallback in cem else None
+
+
 def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str, Any]]:
     """Per routing task and row with finished cells: its statistics and, for a pin (escape) row, the paired
     differences against its partner without the pin (escape)."""
@@ -120,8 +131,8 @@ def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str
                    "escapes": sum(e.get("escape_moves", 0) > 0 for e in flat)}
             against = {"pin": (method, row["partner"]) if row["partner"] else None,
                        "escape": (method, row["escape_partner"]) if row["escape_partner"] else None,
-                       "vs_cem": (REFERENCE, variant) if method != REFERENCE and variant in
-                       grid["methods"].get(REFERENCE, {}).get("variants", {}) else None}
+                       "vs_cem": (REFERENCE, reference_variant(grid, method, variant))
+                       if method != REFERENCE and reference_variant(grid, method, variant) else None}
             for name, other in against.items():
                 if other is None:
                     continue
@@ -183,7 +194,8 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
     versus = [r for r in data if "vs_cem" in r]
     if versus:
         lines += [f"Each row against {REFERENCE.upper()} with the same gripper(s) (the `{REFERENCE}` row of the same "
-                  "variant), on the same episodes: Δ success in percentage points, Δ moves over the episodes both "
+                  "variant; a learner's own variant against `cem/route`, or `cem/route_pin` with the pin), on the same "
+                  "episodes: Δ success in percentage points, Δ moves over the episodes both "
                   "solved (positive: more moves than CEM), 95 % paired t-intervals.", "",
                   "| method | variant | task | Δ success [pp] | Δ moves (both solved) | pairs |", "|---|---|---|---|---|---|"]
         lines += ["| " + " | ".join([r["method"], r["variant"], r["task"], *_paired(r["vs_cem"])]) + " |"

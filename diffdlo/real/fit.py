@@ -280,14 +280,15 @@ def score(pred: torch.Tensor, recordings: Any, start: int = 1) -> dict:
             "recordings": len(ids)}
 
 
-def evaluate(model: CableModel, values: Mapping[str, Any], recordings: Any, repeats: int = 1
-             ) -> tuple[dict, torch.Tensor]:
-    """``score`` of ``predict`` (batched over every recording), with the wall time per trajectory-frame
-    (``time_per_frame_s``: the best of ``repeats`` runs over (B * frames)) under the current torch threads."""
+def evaluate(model: CableModel, values: Mapping[str, Any], recordings: Any, repeats: int = 1,
+             predictor: Any = None) -> tuple[dict, torch.Tensor]:
+    """``score`` of ``predict`` (batched over every recording; ``predictor(model, values, recordings)`` in its place
+    where given, e.g. the residual's), with the wall time per trajectory-frame (``time_per_frame_s``: the best of
+    ``repeats`` runs over (B * frames)) under the current torch threads."""
     best = math.inf
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
-        pred = predict(model, values, recordings)
+        pred = (predictor or predict)(model, values, recordings)
         best = min(best, time.perf_counter() - t0)
     result = score(pred, recordings)
     result["time_per_frame_s"] = best / (result["recordings"] * result["frames"])

@@ -276,15 +276,8 @@ def evaluate(model: CableModel, values: Mapping[str, Any], net: ResidualNet | No
              repeats: int = 1) -> tuple[dict, torch.Tensor]:
     """fit.evaluate with the correction: ``fit.score`` of ``predict`` with the best of ``repeats`` wall times per
     trajectory-frame (``time_per_frame_s``)."""
-    best = math.inf
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        pred = predict(model, values, net, recordings)
-        best = min(best, time.perf_counter() - t0)
-    result = fit.score(pred, recordings)
-    result["time_per_frame_s"] = best / (result["recordings"] * result["frames"])
-    result["threads"] = torch.get_num_threads()
-    return result, pred
+    return fit.evaluate(model, values, recordings, repeats,
+                        predictor=lambda m, v, r: predict(m, v, net, r))
 
 
 # ====================================================================== training
