@@ -246,9 +246,10 @@ PPO_SMALL = ["--set", "hidden=[32,32]", "--set", "n_steps=16", "--set", "n_epoch
 
 def test_ppo_with_the_pin_on_routes_resumes_exactly_and_records_the_side_test(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
-    assert ppo.main(run_argv(a, 256, *PPO_SMALL)) == 0
-    assert ppo.main(run_argv(b, 128, *PPO_SMALL)) == 0
-    assert ppo.main(["--out", str(b), "--resume", "--total-steps", "256", "--no-progress"]) == 0
+    few = ["--num-envs", "4", "--eval-every", "64", "--checkpoint-every", "64"]      # two rollouts of 16 x 4
+    assert ppo.main(run_argv(a, 128, *PPO_SMALL, *few)) == 0
+    assert ppo.main(run_argv(b, 64, *PPO_SMALL, *few)) == 0
+    assert ppo.main(["--out", str(b), "--resume", "--total-steps", "128", "--no-progress"]) == 0
     for name in ("train.csv", "eval.csv", "rollout.csv"):
         assert (a / name).read_text() == (b / name).read_text(), name
     ra, rb = json.loads((a / "results.json").read_text()), json.loads((b / "results.json").read_text())
@@ -259,16 +260,15 @@ def test_ppo_with_the_pin_on_routes_resumes_exactly_and_records_the_side_test(tm
         assert not e["success"] or e["sides_kept"]
 
 
-def test_the_ensemble_world_model_on_routes_resumes_exactly(tmp_path):
+def test_the_ensemble_world_model_runs_on_routes_and_its_error_is_split_near_pegs(tmp_path):
+    """PlaNet with the ensemble among pegs and the pin (exact resume: the free rope's in tests/test_dynamics.py, with
+    pegs PPO's above): the open-loop error and the model-error study split near and far from pegs, the latter exact
+    with the simulator as the predictor."""
     small = ["--set", "members=2", "--set", "model_hidden=[32]", "--set", "batch_size=16", "--set", "seed_episodes=4",
              "--set", "train_every=32", "--set", "updates_per_train=4", "--set", "candidates=16",
              "--set", "elites=4", "--set", "iterations=2", "--set", "openloop_episodes=4", "--set", "action=node_pin"]
-    a, b = tmp_path / "a", tmp_path / "b"
-    assert planet.main(run_argv(a, 128, *small, "--eval-every", "64", "--checkpoint-every", "64")) == 0
-    assert planet.main(run_argv(b, 64, *small, "--eval-every", "64", "--checkpoint-every", "64")) == 0
-    assert planet.main(["--out", str(b), "--resume", "--total-steps", "128", "--no-progress"]) == 0
-    for name in ("train.csv", "eval.csv", "openloop.csv"):
-        assert (a / name).read_text() == (b / name).read_text(), name
+    a = tmp_path / "a"
+    assert planet.main(run_argv(a, 96, *small, "--eval-every", "96", "--checkpoint-every", "96")) == 0
     rows = read_csv(a / "openloop.csv")
     assert "pred_err_near_1" in rows[0] and "pred_err_far_1" in rows[0]
     ra = json.loads((a / "results.json").read_text())
