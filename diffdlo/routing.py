@@ -84,6 +84,39 @@ def route_cost(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor) -> to
     return route_errors(pos, route).mean(-1) + SIDE_COST * wrong_sides(pos, route, pegs).to(pos.dtype)
 
 
+def clear_of_pegs(pos: torch.Tensor, pegs: torch.Tensor, rope_radius: float, iterations: int = 100) -> torch.Tensor:
+    """(N, 2) or (B, N, 2) nodes, (K, 3) or (B, K, 3) pegs (rows of radius 0: none) -> the nodes moved out of the
+    pegs until every link's surface clears every peg (to 0.1 mm): first each node straight out from a peg's centre
+    it lies within ``radius + rope_radius`` of, then each link still reaching into a peg pushed out (both its ends)
+    along the line from the peg's centre to the link's closest point, repeated up to ``iterations`` times.
+
+    A rope read from a picture can lie a few millimetres inside a peg (the perception's error), where the simulator
+    refuses to start a move; the planners project the reading out before planning from it. A rope already clear is
+    returned unchanged."""
+    single = pos.dim() == 2
+    if single:
+        pos, pegs = pos[None], pegs[None]
+    real = pegs[..., 2] > 0                                               # (B, K)
+    out = pos
+    for k in range(pegs.shape[-2]):
+        peg = pegs[:, k:k + 1, :]                                         # (B, 1, 3)
+        reach = (peg[..., 2] + rope_radius)[..., None]                    # (B, 1, 1)
+        away = out - peg[..., :2]
+        dist = away.norm(dim=-1, keepdim=True)
+        side = torch.where(dist > 0, away / dist.clamp_min(torch.finfo(pos.dtype).tiny),
+                           torch.tensor([1.0, 0.0], dtype=pos.dtype, device=pos.device))
+        inside = (dist < reach) & real[:, k, None, None]
+        out = torch.where(inside, peg[..., :2] + side * reach, out)
+    for _ in range(iterations):
+        _, r, d = contact.closest_points(out, pegs)                       # (B, L, K, 2), (B, L, K)
+        push = torch.where(real[:, None, :], pegs[:, None, :, 2] + rope_radius - d, torch.zeros_like(d))
+        if float(push.max()) <= 1e-4:
+            break
+        shift = (push.clamp_min(0.0)[..., None] * r / d[..., None]).sum(2)   # (B, L, 2) per link
+        out = out + torch.nn.functional.pad(shift, (0, 0, 0, 1)) + torch.nn.functional.pad(shift, (0, 0, 1, 0))
+    return out[0] if single else out
+
+
 # ====================================================================== layouts
 @dataclasses.dataclass(frozen=True)
 class Layout:

@@ -135,6 +135,8 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         rope = frames[-1].clone()
         if perception is not None:
             rope = seen(rope, perception, pegs=pegs)        # a route: read among its pegs, planned among the true ones
+            if pegs is not None:                            # a reading a few mm inside a peg: out to its surface
+                rope = routing.clear_of_pegs(rope, pegs, env.sim.params.rope_radius)
             seen_errors.append(float((rope - frames[-1]).norm(dim=-1).mean()))
         action = None if escape is None else escape.plan(rope, planned_target, pegs)
         if action is None:

@@ -16,9 +16,10 @@ from diffdlo import routing
 
 ROUTE_ROWS = ([("greedy", v) for v in ("route", "route_pin")]
               + [(m, v) for m in ("cem", "gradient")
-                 for v in ("route", "route_pin", "route_escape", "route_pin_escape")])
+                 for v in ("route", "route_pin", "route_escape", "route_pin_escape")] + [("cem", "route_image")])
 LEARNER_ROUTE_ROWS = [("ppo", "route"), ("ppo", "route_pin"), ("ppo", "route_rollouts"), ("pets", "route"),
-                      ("pets", "route_pin"), ("latent", "route"), ("latent", "route_pin"), ("sac", "route"), ("apg", "route")]
+                      ("pets", "route_pin"), ("latent", "route"), ("latent", "route_pin"), ("sac", "route"), ("apg", "route"),
+                      ("pets", "route_image"), ("latent", "route_image")]
 
 
 def test_only_the_route_rows_run_the_routing_tasks_each_on_its_env_target():
@@ -71,6 +72,9 @@ def test_a_pin_or_escape_row_is_paired_with_the_row_that_differs_from_it_by_that
     for method in ("ppo", "pets", "latent"):      # a learner's pin: its action node_pin
         assert partner(grid, method, "route_pin") == "route"
     assert partner(grid, "ppo", "route_rollouts") is None
+    for method in ("cem", "pets", "latent"):      # from pictures: a planner's --perception, a learner's obs perceived
+        assert partner(grid, method, "route_image", "perception") == "route"
+        assert partner(grid, method, "route", "perception") is None
     grid = copy.deepcopy(grid)
     grid["methods"]["cem"]["variants"]["route"]["args"]["candidates"] = 100      # no longer the pin alone
     assert partner(grid, "cem", "route_pin") is None
@@ -173,8 +177,9 @@ def test_the_other_planners_are_paired_against_cem_with_the_same_grippers():
 def test_main_grid_runs_every_routing_row():
     from pathlib import Path
     script = (Path(__file__).parents[1] / "benchmarks/main_grid.sh").read_text().replace("\\\n", " ")
-    line, = [x for x in script.splitlines() if "/route" in x and not x.lstrip().startswith("#")]
-    assert sorted(line.split("--rows", 1)[1].split()) == sorted(f"{m}/{v}" for m, v in ROUTE_ROWS)
+    lines = [x for x in script.splitlines() if "/route" in x and not x.lstrip().startswith("#")]
+    rows = [row for line in lines for row in line.split("--rows", 1)[1].split()]
+    assert sorted(rows) == sorted(f"{m}/{v}" for m, v in ROUTE_ROWS + LEARNER_ROUTE_ROWS)
 
 
 def test_an_escape_row_is_paired_against_the_same_row_without_it():
@@ -201,3 +206,18 @@ def test_a_learner_row_is_paired_against_cem_with_the_same_grippers():
     assert reference_variant(grid, "pets", "route_pin") == "route_pin"
     assert reference_variant(grid, "ppo", "route_rollouts") == "route"          # no cem/route_rollouts: the plain row
     assert reference_variant(grid, "cem", "route_escape") == "route_escape"
+
+
+def test_a_row_from_pictures_is_paired_against_the_same_row_given_the_state():
+    grid = load_grid()
+    done = _done(grid)
+    for seed in (0, 1):       # cem/route_image: episode 0 missed (the reading), the others one move more
+        eps = [dict(e, steps=e["steps"] + 1) for e in done[("cem", "route", "route", seed)]["episodes"]]
+        eps[0] = dict(eps[0], success=False, final_error=0.02)
+        done[("cem", "route_image", "route", seed)] = dict(done[("cem", "route", "route", seed)], episodes=eps)
+    rows = {(r["method"], r["variant"]): r for r in routing_data(grid, done)}
+    pictures = rows[("cem", "route_image")]["pictures"]
+    assert pictures["pairs"] == 8 and sorted(pictures["ds"]) == [-1.0] * 2 + [0.0] * 6
+    assert pictures["dm"] == [1.0] * 4                    # episodes 1 and 2 of each seed, solved by both
+    assert "pictures" not in rows[("cem", "route")]
+    assert "| cem | route_image | route | route | -25 " in "\n".join(routing_section(grid, done))

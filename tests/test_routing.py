@@ -128,3 +128,29 @@ def test_the_layout_maker_draws_and_refuses_to_overwrite(tmp_path, capsys):
     figure = tmp_path / "layouts.png"
     assert make_layouts.main(["--figure", str(figure)]) == 0 and figure.stat().st_size > 10_000
     assert make_layouts.main(["--figure", str(figure)]) == 2 and "--overwrite" in capsys.readouterr().err
+
+
+def test_clear_of_pegs_moves_a_rope_out_of_the_pegs_and_leaves_a_clear_one(p):
+    """Ropes (random boards' routes, each node pulled up to 12 mm towards the nearest peg: links up to a peg's
+    radius deep, some nodes inside) come out with every link's surface clear of every peg, the simulator takes them,
+    no node moves farther than the depth it started at plus a link's sag, and a clear rope is returned as it was."""
+    gen = torch.Generator().manual_seed(3)
+    layouts = [routing.random_layout(p, gen) for _ in range(6)]
+    slots = max(len(lay.pegs) for lay in layouts)
+    pegs = torch.stack([routing.padded(lay.pegs.double(), slots) for lay in layouts])
+    routes = torch.stack([lay.route.double() for lay in layouts])
+    away = routes[:, :, None, :] - pegs[:, None, :, :2]
+    dist = away.norm(dim=-1) + torch.where(pegs[:, None, :, 2] > 0, 0.0, 1e3)
+    k = dist.argmin(-1)
+    towards = -torch.gather(away, 2, k[..., None, None].expand(-1, -1, 1, 2))[:, :, 0] / dist.amin(-1)[..., None]
+    pull = 0.012 * torch.rand(routes.shape[:2], generator=gen, dtype=F64)[..., None]
+    ropes = routes + pull * towards
+    before = contact.depth(ropes, routing.simulator_pegs(pegs), p.rope_radius)
+    assert float(before.max()) > p.rope_radius                       # deeper than the simulator takes
+    cleared = routing.clear_of_pegs(ropes, pegs, p.rope_radius)
+    assert float(contact.depth(cleared, routing.simulator_pegs(pegs), p.rope_radius).max()) <= 1e-4
+    assert float((cleared - ropes).norm(dim=-1).max()) < float(before.max()) + 0.005
+    sim = diffdlo.Simulator(p, dtype=F64)
+    moved = sim.move(cleared, torch.zeros(6, dtype=torch.long), torch.zeros(6, 2, dtype=F64), routing.simulator_pegs(pegs))
+    assert bool(torch.isfinite(moved).all())
+    assert torch.equal(routing.clear_of_pegs(routes, pegs, p.rope_radius), routes)          # routes clear their pegs

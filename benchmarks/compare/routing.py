@@ -33,10 +33,13 @@ def routing_rows(grid: dict[str, Any]) -> list[tuple[str, str]]:
 
 def _settings(entry: dict[str, Any] | None, flag: str) -> tuple[bool, dict[str, Any]]:
     """Whether a variant has ``flag`` on (a planner's ``--pin 1`` / ``--escape K``; a learner's pin: its
-    ``action: node_pin``), and its args and set without it."""
+    ``action: node_pin``; ``perception``: a planner's ``--perception PATH``, a learner's with its obs "perceived"),
+    and its args and set without it."""
     entry = entry or {}
     args, sets = dict(entry.get("args") or {}), dict(entry.get("set") or {})
     on = bool(args.pop(flag, 0))
+    if flag == "perception" and args.get("obs") == "perceived":
+        args.pop("obs")
     if flag == "pin" and sets.get("action") == "node_pin":
         on = True
         sets.pop("action")
@@ -128,9 +131,11 @@ def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str
                                  and all("env_steps" in r for r in runs) else float("nan")),
                    "partner": partner(grid, method, variant, "pin"),
                    "escape_partner": partner(grid, method, variant, "escape"),
+                   "picture_partner": partner(grid, method, variant, "perception"),
                    "escapes": sum(e.get("escape_moves", 0) > 0 for e in flat)}
             against = {"pin": (method, row["partner"]) if row["partner"] else None,
                        "escape": (method, row["escape_partner"]) if row["escape_partner"] else None,
+                       "pictures": (method, row["picture_partner"]) if row["picture_partner"] else None,
                        "vs_cem": (REFERENCE, reference_variant(grid, method, variant))
                        if method != REFERENCE and reference_variant(grid, method, variant) else None}
             for name, other in against.items():
@@ -212,6 +217,16 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
         lines += ["| " + " | ".join([r["method"], r["variant"], r["task"],
                                      f"{r['escapes']} of {r['episodes']}", *_paired(r["escape"])]) + " |"
                   for r in escaped]
+        lines.append("")
+    pictured = [r for r in data if "pictures" in r]
+    if pictured:
+        lines += ["**From pictures**: each row acting on what a perception reads from the env's 64 px pictures (the "
+                  "rope and the route, the pegs known) minus the same row given the simulator's state, on the same "
+                  "episodes.", "",
+                  "| method | variant | task | from the state | Δ success [pp] | Δ moves (both solved) | pairs |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += ["| " + " | ".join([r["method"], r["variant"], r["task"], r["picture_partner"],
+                                     *_paired(r["pictures"])]) + " |" for r in pictured]
         lines.append("")
     lines += [f"![{name.rsplit('.', 1)[0].rsplit('/', 1)[-1]}]({name})" for name in galleries or []]
     return lines + ([""] if galleries else [])
