@@ -19,10 +19,11 @@ nice -n 10 $C --rows cem/precise gradient/precise pets/precise ppo/precise laten
 # stall escape)
 nice -n 10 $C --rows greedy/route greedy/route_pin cem/route cem/route_pin cem/route_escape cem/route_pin_escape \
   gradient/route gradient/route_pin gradient/route_escape gradient/route_pin_escape
-# the learners' routing rows (issue 60: trained on random boards, read on the held-out layouts too), then the routing
-# rows from 64 px pictures (CEM and the two world models, obs "perceived")
+# the learners' routing rows (issue 60: trained on random boards, read on the held-out layouts too), CEM at the world
+# models' planning budget (their planner with a perfect model), then the routing rows from 64 px pictures (CEM and
+# the two world models, obs "perceived")
 nice -n 10 $C --rows apg/route pets/route pets/route_pin ppo/route ppo/route_pin ppo/route_rollouts latent/route \
-  latent/route_pin sac/route cem/route_image pets/route_image latent/route_image
+  latent/route_pin sac/route cem/route_wm_budget cem/route_image pets/route_image latent/route_image
 # every other row in one pool, so both jobs stay busy to the last cell: the main rows first, cheapest first, then
 # the named lines (planners), the distillation (its teacher: the same seed's ppo/fewest_moves cell), the APG
 # variants and the secondary rows

@@ -16,7 +16,8 @@ from diffdlo import routing
 
 ROUTE_ROWS = ([("greedy", v) for v in ("route", "route_pin")]
               + [(m, v) for m in ("cem", "gradient")
-                 for v in ("route", "route_pin", "route_escape", "route_pin_escape")] + [("cem", "route_image")])
+                 for v in ("route", "route_pin", "route_escape", "route_pin_escape")]
+              + [("cem", "route_image"), ("cem", "route_wm_budget")])
 LEARNER_ROUTE_ROWS = [("ppo", "route"), ("ppo", "route_pin"), ("ppo", "route_rollouts"), ("pets", "route"),
                       ("pets", "route_pin"), ("latent", "route"), ("latent", "route_pin"), ("sac", "route"), ("apg", "route"),
                       ("pets", "route_image"), ("latent", "route_image")]
@@ -221,3 +222,23 @@ def test_a_row_from_pictures_is_paired_against_the_same_row_given_the_state():
     assert pictures["dm"] == [1.0] * 4                    # episodes 1 and 2 of each seed, solved by both
     assert "pictures" not in rows[("cem", "route")]
     assert "| cem | route_image | route | route | -25 " in "\n".join(routing_section(grid, done))
+
+
+def test_a_row_is_paired_with_the_row_compare_yaml_names_and_a_bad_name_is_refused(tmp_path):
+    import yaml
+    grid = load_grid()
+    assert grid["methods"]["pets"]["variants"]["route"]["paired_with"] == "cem/route_wm_budget"
+    done = _done(grid)
+    for seed in (0, 1):       # the world models' planner through the simulator: one move more than CEM's budget
+        eps = [dict(e, steps=e["steps"] + 1) for e in done[("cem", "route", "route", seed)]["episodes"]]
+        done[("cem", "route_wm_budget", "route", seed)] = dict(done[("cem", "route", "route", seed)], episodes=eps)
+    rows = {(r["method"], r["variant"]): r for r in routing_data(grid, done)}
+    assert rows[("cem", "route_wm_budget")]["paired_with"]["dm"] == [1.0] * 6
+    assert "paired_with" not in rows[("cem", "route")]
+    assert "| cem | route_wm_budget | route | cem/route | +0 [+0, +0] | +1.0" in "\n".join(routing_section(grid, done))
+    grids = yaml.safe_load(compare.GRID_FILE.read_text())
+    grids["full"]["methods"]["pets"]["variants"]["route"]["paired_with"] = "cem/nowhere"
+    path = tmp_path / "grid.yaml"
+    path.write_text(yaml.safe_dump(grids))
+    with pytest.raises(ValueError, match="cem/nowhere"):
+        load_grid(path=path)

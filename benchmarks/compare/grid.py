@@ -38,6 +38,11 @@ def load_grid(quick: bool = False, path: Path | str = GRID_FILE) -> dict[str, An
         raise ValueError(f"{path}: grid {name!r}: routes {bad} are not targets of the grid")
     for method, spec in grid["methods"].items():
         for variant, v in (spec.get("variants") or {}).items():
+            twin = (v or {}).get("paired_with")
+            if twin is not None and (not isinstance(twin, str) or twin.partition("/")[2] not in
+                                     grid["methods"].get(twin.partition("/")[0], {}).get("variants", {})):
+                raise ValueError(f"{path}: grid {name!r}: variant {method}/{variant}: paired_with {twin!r} is not "
+                                 "a method/variant of the grid")
             if "tolerance" in (v or {}):
                 try:
                     check_tolerance(v["tolerance"])

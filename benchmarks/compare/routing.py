@@ -95,6 +95,14 @@ def reference_variant(grid: dict[str, Any], method: str, variant: str) -> str | 
     return fallback if fallback in cem else None
 
 
+def paired_with(grid: dict[str, Any], method: str, variant: str) -> tuple[str, str] | None:
+    """The row a routing row names as its ``paired_with`` in compare.yaml (a world model: its own planner, CEM at
+    its budget, through the simulator, which splits the moves its planner's budget costs from those its model's
+    error costs), or None."""
+    twin = (grid["methods"][method]["variants"][variant] or {}).get("paired_with")
+    return tuple(twin.split("/", 1)) if twin else None
+
+
 def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str, Any]]:
     """Per routing task and row with finished cells: its statistics and, for a pin (escape) row, the paired
     differences against its partner without the pin (escape)."""
@@ -136,6 +144,7 @@ def routing_data(grid: dict[str, Any], done: dict[tuple, dict]) -> list[dict[str
             against = {"pin": (method, row["partner"]) if row["partner"] else None,
                        "escape": (method, row["escape_partner"]) if row["escape_partner"] else None,
                        "pictures": (method, row["picture_partner"]) if row["picture_partner"] else None,
+                       "paired_with": paired_with(grid, method, variant),
                        "vs_cem": (REFERENCE, reference_variant(grid, method, variant))
                        if method != REFERENCE and reference_variant(grid, method, variant) else None}
             for name, other in against.items():
@@ -217,6 +226,18 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
         lines += ["| " + " | ".join([r["method"], r["variant"], r["task"],
                                      f"{r['escapes']} of {r['episodes']}", *_paired(r["escape"])]) + " |"
                   for r in escaped]
+        lines.append("")
+    named = [r for r in data if "paired_with" in r]
+    if named:
+        lines += ["**Paired as compare.yaml names** (`paired_with`), on the same episodes: a world model's row minus "
+                  "its own planner (CEM at its budget and cost) through the simulator, a perfect model: the moves its "
+                  "model's error costs; that planner's row minus CEM at its own budget: the moves the smaller budget "
+                  "costs.", "",
+                  "| method | variant | task | minus | Δ success [pp] | Δ moves (both solved) | pairs |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += ["| " + " | ".join([r["method"], r["variant"], r["task"],
+                                     "/".join(paired_with(grid, r["method"], r["variant"])),
+                                     *_paired(r["paired_with"])]) + " |" for r in named]
         lines.append("")
     pictured = [r for r in data if "pictures" in r]
     if pictured:
