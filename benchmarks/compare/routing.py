@@ -215,39 +215,32 @@ def routing_section(grid: dict[str, Any], done: dict[tuple, dict], galleries: li
         lines += ["| " + " | ".join([r["method"], r["variant"], r["task"], *_paired(r["vs_cem"])]) + " |"
                   for r in versus]
         lines.append("")
-    escaped = [r for r in data if "escape" in r]
-    if escaped:
-        lines += ["**The stall escape** (planners/escape.py): each row run with `--escape K` (after K moves that "
-                  "brought the rope's best error down by under 1 mm, greedy moves until it is 1 mm below its best, "
-                  "then the planner again) minus the same row without it, on the same episodes; **escaped**: the "
-                  "episodes in which it took over at least once.", "",
-                  "| method | variant | task | escaped | Δ success [pp] | Δ moves (both solved) | pairs |",
-                  "|---|---|---|---|---|---|---|"]
-        lines += ["| " + " | ".join([r["method"], r["variant"], r["task"],
-                                     f"{r['escapes']} of {r['episodes']}", *_paired(r["escape"])]) + " |"
-                  for r in escaped]
-        lines.append("")
-    named = [r for r in data if "paired_with" in r]
-    if named:
-        lines += ["**Paired as compare.yaml names** (`paired_with`), on the same episodes: a world model's row minus "
-                  "its own planner (CEM at its budget and cost) through the simulator, a perfect model: the moves its "
-                  "model's error costs; that planner's row minus CEM at its own budget: the moves the smaller budget "
-                  "costs.", "",
-                  "| method | variant | task | minus | Δ success [pp] | Δ moves (both solved) | pairs |",
-                  "|---|---|---|---|---|---|---|"]
-        lines += ["| " + " | ".join([r["method"], r["variant"], r["task"],
-                                     "/".join(paired_with(grid, r["method"], r["variant"])),
-                                     *_paired(r["paired_with"])]) + " |" for r in named]
-        lines.append("")
-    pictured = [r for r in data if "pictures" in r]
-    if pictured:
-        lines += ["**From pictures**: each row acting on what a perception reads from the env's 64 px pictures (the "
-                  "rope and the route, the pegs known) minus the same row given the simulator's state, on the same "
-                  "episodes.", "",
-                  "| method | variant | task | from the state | Δ success [pp] | Δ moves (both solved) | pairs |",
-                  "|---|---|---|---|---|---|---|"]
-        lines += ["| " + " | ".join([r["method"], r["variant"], r["task"], r["picture_partner"],
-                                     *_paired(r["pictures"])]) + " |" for r in pictured]
-        lines.append("")
+    lines += _pairing_table(
+        data, "escape", "escaped", lambda r: f"{r['escapes']} of {r['episodes']}",
+        "**The stall escape** (planners/escape.py): each row run with `--escape K` (after K moves that brought the "
+        "rope's best error down by under 1 mm, greedy moves until it is 1 mm below its best, then the planner again) "
+        "minus the same row without it, on the same episodes; **escaped**: the episodes in which it took over at "
+        "least once.")
+    lines += _pairing_table(
+        data, "paired_with", "minus", lambda r: "/".join(paired_with(grid, r["method"], r["variant"])),
+        "**Paired as compare.yaml names** (`paired_with`), on the same episodes: a world model's row minus its own "
+        "planner (CEM at its budget and cost) through the simulator, a perfect model: the moves its model's error "
+        "costs; that planner's row minus CEM at its own budget: the moves the smaller budget costs.")
+    lines += _pairing_table(
+        data, "pictures", "from the state", lambda r: r["picture_partner"],
+        "**From pictures**: each row acting on what a perception reads from the env's 64 px pictures (the rope and "
+        "the route, the pegs known) minus the same row given the simulator's state, on the same episodes.")
     lines += [f"![{name.rsplit('.', 1)[0].rsplit('/', 1)[-1]}]({name})" for name in galleries or []]
     return lines + ([""] if galleries else [])
+
+
+def _pairing_table(data: list[dict[str, Any]], key: str, column: str, cell, intro: str) -> list[str]:
+    """The rows paired under ``key`` (their Δ success, Δ moves and pairs), with one more column ``column`` whose
+    text ``cell(row)`` gives; none where no row has that pairing."""
+    rows = [r for r in data if key in r]
+    if not rows:
+        return []
+    return [intro, "", f"| method | variant | task | {column} | Δ success [pp] | Δ moves (both solved) | pairs |",
+            "|---|---|---|---|---|---|---|",
+            *["| " + " | ".join([r["method"], r["variant"], r["task"], cell(r), *_paired(r[key])]) + " |"
+              for r in rows], ""]
