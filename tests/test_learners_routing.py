@@ -14,6 +14,7 @@ from agents.models import hybrid
 from agents.models.ensemble import EnsembleDynamics, ModelObjective, k_step_errors, peg_clearance
 from agents.models.networks import Features
 from agents.common.config import InputOptions
+from diffdlo import contact
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.params import load_params
 from diffdlo.simulator import Simulator
@@ -287,6 +288,19 @@ def test_the_ensemble_world_model_runs_on_routes_and_its_error_is_split_near_peg
                                                              simulator_pegs(pegs.double()), pin))
     assert max(m["miss_worst"] for m in exact["moves"]) < 1e-4
     assert [m["error_before"] for m in exact["moves"]] == [m["error_before"] for m in res["moves"]]
+    # planning with the predictions moved out of the pegs (benchmarks.studies.planet_budget --project-pegs)
+    from benchmarks.studies import planet_budget
+    assert planet_budget.main(["--run", str(a), "--out", str(tmp_path / "pb"), "--project-pegs", "0", "1",
+                               "--episodes", "2", "--candidates", "8", "--iterations", "1"]) == 0
+    pb = json.loads((tmp_path / "pb" / "results.json").read_text())["rows"]
+    assert [r["project_pegs"] for r in pb] == [False, True] and all(len(r["episodes"]) == 2 for r in pb)
+    pos, node, drag, pegs, pin = board(load_params("cable"), 4)
+    inside = lambda rope, node, drag, pegs=None, pin=None: rope.expand(3, *rope.shape).clone()   # noqa: E731
+    deep = pos.clone()
+    deep[:, 10] = pegs[:, 0, :2]                              # a node at a peg's centre
+    out = planet_budget.projected(inside, 0.005)(deep, node, drag, pegs)
+    assert out.shape == (3, 4, *pos.shape[1:])
+    assert float(contact.depth(out.reshape(-1, *pos.shape[1:]), simulator_pegs(pegs).repeat(3, 1, 1), 0.005).max()) <= 1e-3
 
 
 def test_apg_among_pegs_moves_the_rope_with_the_pegs(tmp_path):

@@ -11,7 +11,12 @@ planning time per env step (all evaluation ropes planned together, as in trainin
         planners/targets/s_curve.yaml --out runs/planet_heldout_s0
 
 Budgets not given are the run's own. Writes ``results.json`` under --out (refuses to replace one without
---overwrite). Elites are 10 % of the candidates.
+--overwrite), each row with its episodes (success, moves, final error: the rows share their episodes, to pair).
+Elites are 10 % of the candidates. Among pegs, ``--project-pegs 0 1`` also plans with each predicted rope moved out of
+the pegs (``diffdlo.routing.clear_of_pegs``: the model's rope never inside a peg), a grid dimension like the budgets:
+
+    python -m benchmarks.studies.planet_budget --run runs/compare_route_wm/pets/route/route/seed0 --project-pegs 0 1 \
+        --out runs/planet_project_s0
 """
 from __future__ import annotations
 
@@ -31,7 +36,21 @@ from agents.common import config
 from agents.common.checkpoints import CHECKPOINT, load_checkpoint
 from agents.common.envs import make_env
 from agents.common.evaluation import evaluate
+from diffdlo import routing
 from diffdlo.shapes import TargetError
+
+
+def projected(predict, rope_radius: float):
+    """A model's forward whose ropes are moved out of the pegs they are predicted in (none given: unchanged)."""
+    def forward(rope, node, drag, pegs=None, pin=None):
+        out = predict(rope, node, drag, pegs, pin)
+        if pegs is None:
+            return out
+        board = pegs.expand(*out.shape[:-2], *pegs.shape[-2:]) if pegs.dim() < out.dim() else pegs
+        flat = routing.clear_of_pegs(out.reshape(-1, *out.shape[-2:]), board.reshape(-1, *board.shape[-2:]).to(out),
+                                     rope_radius, iterations=5)
+        return flat.reshape(out.shape)
+    return forward
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iterations", type=int, nargs="+", default=None, help="default: the run's iterations")
     ap.add_argument("--propagations", nargs="+", default=None, choices=["members", "mean"],
                     help="default: the run's propagation")
+    ap.add_argument("--project-pegs", type=int, nargs="+", default=[0], choices=[0, 1],
+                    help="1: each predicted rope moved out of the pegs (a run among pegs); default 0")
     ap.add_argument("--episodes", type=int, default=None, help="evaluation episodes (default: the run's)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--overwrite", action="store_true", help="replace an existing results.json under --out")
@@ -83,10 +104,15 @@ def main(argv: list[str] | None = None) -> int:
     model = planet.build_model(cfg, env.reset(seed=0), env.core.action_dim, params)
     model.load_state_dict(ck["model"])
     model.eval()
+    if 1 in args.project_pegs and not getattr(model, "max_pegs", 0):
+        ap.error(f"--project-pegs 1: {args.run} holds a model without pegs")
+    predict = model.forward
     rows = []
-    grid = list(itertools.product(targets, args.horizons, args.candidates, args.iterations, args.propagations))
-    for target, h, c, it, prop in tqdm(grid, desc="budgets", file=sys.stderr):
+    grid = list(itertools.product(targets, args.horizons, args.candidates, args.iterations, args.propagations,
+                                  args.project_pegs))
+    for target, h, c, it, prop, project in tqdm(grid, desc="budgets", file=sys.stderr):
         env = envs[str(target)]
+        model.forward = projected(predict, params.rope_radius) if project else predict
         run_cfg = config.replace(cfg, horizon=h, candidates=c, elites=max(1, c // 10), iterations=it,
                                       propagation=prop)
         planner = planet.make_planner(model, run_cfg, env.core, cfg.run.eval_seed)
@@ -94,15 +120,17 @@ def main(argv: list[str] | None = None) -> int:
         r = evaluate(planner, env, n, seed=cfg.run.eval_seed)
         succ = [e for e in r["episodes"] if e["success"]]
         rows.append({"target": str(target), "horizon": h, "candidates": c, "iterations": it, "propagation": prop,
+                     "project_pegs": bool(project),
                      "success_rate": r["success_rate"],
                      "moves_to_success": sum(e["steps"] for e in succ) / len(succ) if succ else None,
                      "mean_final_error": r["mean_final_error"],
                      "plan_ms_per_env_step": 1000 * planner.plan_s / max(planner.planned, 1),
                      "model_evals_per_move": h * c * it * (model.E if prop == "members" else 1),
-                     "wall_s": time.perf_counter() - t0})
+                     "wall_s": time.perf_counter() - t0,
+                     "episodes": [{k: e[k] for k in ("success", "steps", "final_error")} for e in r["episodes"]]})
         row = rows[-1]
         moves = "-" if row["moves_to_success"] is None else f"{row['moves_to_success']:.1f}"
-        print(f"{target}: H={h} candidates={c} iterations={it} {prop}: success {row['success_rate']:.2f}, "
+        print(f"{target}: H={h} candidates={c} iterations={it} {prop}{' projected' if project else ''}: success {row['success_rate']:.2f}, "
               f"moves {moves}, "
               f"final error {100 * row['mean_final_error']:.2f} cm, plan {row['plan_ms_per_env_step']:.0f} ms per "
               f"env step ({env.num_envs} ropes together)", flush=True)
