@@ -8,12 +8,11 @@ import pytest
 import torch
 
 from agents import planet
-from agents.common.buffer import ReplayBuffer
 from agents.common.envs import make_env
 from agents.models import openloop
 from agents.models.rssm import RSSM, free_nats_kl
 
-from test_planet import tiny_cfg   # the tiny rope and RSSM of the PlaNet tests
+from test_planet import collect, tiny_cfg   # the tiny rope and RSSM of the PlaNet tests, random moves
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -21,15 +20,8 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 def setup(rows=12, seed=0, **kw):
     """A tiny config, a model built from it, random-move chunks and the last observation."""
     cfg = tiny_cfg(**kw)
-    env = make_env(cfg.task, cfg.run, cfg.task.cable_params(), cfg.run.num_envs)
-    obs = env.reset(seed=seed)
-    rb = ReplayBuffer(rows, cfg.run.num_envs, obs, env.core.action_dim)
-    g = torch.Generator().manual_seed(seed)
-    for _ in range(rows):
-        a = torch.rand(cfg.run.num_envs, env.core.action_dim, generator=g)
-        nxt, r, te, tr, _, fo = env.step(a)
-        rb.add(obs, a, r, te, tr, final_obs=fo)
-        obs = nxt
+    rb, obs = collect(cfg, rows, seed)
+    env = make_env(cfg.task, cfg.run, cfg.task.cable_params(), cfg.run.num_envs)   # its core: the action layout
     torch.manual_seed(seed)
     model = planet.build_model(cfg, obs, env.core.action_dim, cfg.task.cable_params())
     return cfg, model, rb, obs, env
