@@ -110,7 +110,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
     each move, the env's own figures.
     ``perception``: the planner is given the rope and the target as this perception reads them from the env's
     pictures (the target once per episode), not the simulator's state; "seen_error_mm" records how far off they were
-    (mean node distance, averaged over the moves).
+    (mean node distance, averaged over the moves; "seen_errors_mm" per move).
     ``escape`` (planners.escape.StallEscape): its greedy moves replace the planner's after a stall; "escapes" and
     "escape_moves" record how often and how many."""
     env.reset(seed=seed)
@@ -158,6 +158,7 @@ def run_episode(env: BatchedShapeControl, planner, seed: int, desc: str = "", pr
         stats["grad_evals"] -= grad0
     if perception is not None:
         stats["seen_error_mm"] = 1000 * sum(seen_errors) / max(len(seen_errors), 1)
+        stats["seen_errors_mm"] = [round(1000 * e, 2) for e in seen_errors]      # per move, before each plan
         stats["seen_target_error_mm"] = 1000 * float((planned_target - target).norm(dim=-1).mean())
     if escape is not None:
         stats["escapes"], stats["escape_moves"] = escape.escapes, escape.moves

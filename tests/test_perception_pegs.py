@@ -106,6 +106,7 @@ def test_a_planner_plans_a_route_from_the_perceived_rope(tmp_path, one_thread):
     episode = json.loads((out / "results.json").read_text())["episodes"][0]
     assert episode["steps"] == 1 and len(episode["pegs"]) == 3
     assert 0 < episode["seen_error_mm"] < 5 and episode["seen_target_error_mm"] < 5, episode
+    assert episode["seen_errors_mm"] == [pytest.approx(episode["seen_error_mm"], abs=0.01)]     # one move
 
 
 def test_a_reading_inside_a_peg_is_projected_out_before_planning(tmp_path, one_thread, monkeypatch):

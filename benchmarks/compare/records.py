@@ -26,7 +26,8 @@ from .settings import argv_changes, comparable_argv
 RESULTS_FILE = ROOT / "docs" / "results" / "cells.jsonl"
 EPISODE_KEYS = ("success", "steps", "final_error", "start_error", "target_name",
                 "sides_kept",     # a route's side test at the episode's end (routing cells only)
-                "escape_moves")   # the greedy moves of a planner's stall escape (--escape rows only)
+                "escape_moves",   # the greedy moves of a planner's stall escape (--escape rows only)
+                "seen_error_mm")  # a planner's reading from pictures: mean node error over the moves (--perception)
 KEY = ("method", "variant", "target", "seed")
 
 
