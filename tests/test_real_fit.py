@@ -20,10 +20,12 @@ pytestmark = pytest.mark.usefixtures("one_thread")     # tests/conftest.py: one 
 
 
 def synthetic(values, n=8, batch=4, frames=60, link=0.1, mass_per_length=0.05, marker=4e-4, seed=0, substeps=5,
-              amplitude=0.15, settle=100):
-    """(batch, frames, n, 3) recordings of a chain with ``values`` (FIT_NAMES) swung by its two held ends: it first
-    settles ``settle`` frames (with 20x the drag) from straight and level at 0.5 m, its ends drawn 20 % together;
-    then each end pair moves on its own random sinusoid (amplitude up to ``amplitude`` [m], 0.5-1.5 Hz) from rest."""
+              amplitude=0.15, settle=100, gravity=9.81, hold_bent=False):
+    """(batch, frames, n, 3) recordings of a chain with ``values`` (FIT_NAMES) under ``gravity`` swung by its two held
+    ends: it first settles ``settle`` frames (with 20x the drag) from straight and level at 0.5 m, its ends drawn 20 %
+    together and its middle bent out of line (``hold_bent``: the held nodes kept where the bend puts them, else where
+    they were before it); then each end pair moves on its own random sinusoid (amplitude up to ``amplitude`` [m],
+    0.5-1.5 Hz) from rest."""
     g = torch.Generator().manual_seed(seed)
     held_idx = [h % n for h in HELD]
     mask = torch.zeros(n, dtype=torch.bool)
@@ -32,10 +34,12 @@ def synthetic(values, n=8, batch=4, frames=60, link=0.1, mass_per_length=0.05, m
     x0[..., 0] = torch.arange(n, dtype=F64) * link * 0.8
     x0[..., 2] = 0.5
     params = chain3d.ChainParams(rest_lengths=torch.full((n - 1,), link, dtype=F64), mass_per_length=mass_per_length,
-                                 point_mass=marker, **values)
+                                 point_mass=marker, gravity=gravity, **values)
     if settle:
+        bend = 0.02 * torch.sin(math.pi * torch.arange(n, dtype=F64) / (n - 1))            # out of line
+        x0[:, :, 2] += bend if hold_bent else 0.0
         still = x0[:, held_idx].unsqueeze(0).expand(settle, -1, -1, -1).contiguous()
-        x0[:, :, 2] += 0.02 * torch.sin(math.pi * torch.arange(n, dtype=F64) / (n - 1))    # bend it out of line
+        x0[:, :, 2] += 0.0 if hold_bent else bend
         x0 = chain3d.rollout(x0, None, mask, still, dataclasses.replace(params, drag=20 * values["drag"]),
                              substeps)[-1]
     t = torch.arange(frames, dtype=F64) * deform.DT

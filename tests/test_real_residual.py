@@ -9,9 +9,9 @@ import torch
 
 from diffdlo.real import chain3d, deform, fit, residual
 
+from test_real_fit import HELD, TRUE, synthetic as fit_synthetic     # the held nodes, the true values, the chain
+
 F64 = torch.float64
-HELD = (0, 1, -2, -1)
-TRUE = {"EI": 2e-3, "EA": 30.0, "drag": 0.05, "axial_damping": 2e-3, "bending_damping": 2e-6}
 N = 6
 LINK = 0.1
 
@@ -25,29 +25,9 @@ def synthetic(values, **kw):
 
 @functools.lru_cache(maxsize=None)
 def _synthetic(values, batch=4, frames=40, gravity=9.81, seed=0, substeps=5, amplitude=0.15, settle=60):
-    """(batch, frames, N, 3) recordings of a chain with ``values`` under ``gravity`` swung by its two held ends (as
-    tests/test_real_fit.py's): settled from straight and level at 0.5 m, ends drawn 20 % together, then each end
-    pair on its own random sinusoid from rest."""
-    values = dict(values)
-    g = torch.Generator().manual_seed(seed)
-    held = [h % N for h in HELD]
-    mask = torch.zeros(N, dtype=torch.bool)
-    mask[held] = True
-    x0 = torch.zeros(batch, N, 3, dtype=F64)
-    x0[..., 0] = torch.arange(N, dtype=F64) * LINK * 0.8
-    x0[..., 2] = 0.5 + 0.02 * torch.sin(math.pi * torch.arange(N, dtype=F64) / (N - 1))
-    params = chain3d.ChainParams(rest_lengths=torch.full((N - 1,), LINK, dtype=F64), mass_per_length=0.05,
-                                 point_mass=4e-4, gravity=gravity, **values)
-    still = x0[:, held].unsqueeze(0).expand(settle, -1, -1, -1).contiguous()
-    x0 = chain3d.rollout(x0, None, mask, still, dataclasses.replace(params, drag=20 * values["drag"]), substeps)[-1]
-    t = torch.arange(frames, dtype=F64) * deform.DT
-    amp = amplitude * torch.rand(batch, 2, 3, generator=g, dtype=F64)
-    freq = 0.5 + torch.rand(batch, 2, 3, generator=g, dtype=F64)
-    phase = 2 * math.pi * torch.rand(batch, 2, 3, generator=g, dtype=F64)
-    move = amp * (torch.sin(2 * math.pi * freq * t.view(-1, 1, 1, 1) + phase) - torch.sin(phase))
-    move = torch.stack([move[:, :, 0], move[:, :, 0], move[:, :, 1], move[:, :, 1]], 2)
-    out = chain3d.rollout(x0, None, mask, x0[:, held].unsqueeze(0) + move, params, substeps)
-    return out.transpose(0, 1).contiguous()
+    """tests/test_real_fit.py's recordings of a chain of N nodes under ``gravity``, its held nodes kept bent."""
+    return fit_synthetic(dict(values), n=N, batch=batch, frames=frames, link=LINK, seed=seed, substeps=substeps,
+                         amplitude=amplitude, settle=settle, gravity=gravity, hold_bent=True)
 
 
 def cable(rec):
