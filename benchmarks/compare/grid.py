@@ -39,8 +39,8 @@ def load_grid(quick: bool = False, path: Path | str = GRID_FILE) -> dict[str, An
     for method, spec in grid["methods"].items():
         for variant, v in (spec.get("variants") or {}).items():
             twin = (v or {}).get("paired_with")
-            if twin is not None and (not isinstance(twin, str) or twin.partition("/")[2] not in
-                                     grid["methods"].get(twin.partition("/")[0], {}).get("variants", {})):
+            twin_method, _, twin_variant = str(twin).partition("/")
+            if twin is not None and twin_variant not in grid["methods"].get(twin_method, {}).get("variants", {}):
                 raise ValueError(f"{path}: grid {name!r}: variant {method}/{variant}: paired_with {twin!r} is not "
                                  "a method/variant of the grid")
             if "tolerance" in (v or {}):
