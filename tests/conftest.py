@@ -1,9 +1,15 @@
 import dataclasses
+import os
 
 import pytest
 import torch
 
 import diffdlo
+
+# Under pytest-xdist (the README's test command: -n 2) each worker gets its share of the cores, so that two workers
+# do not run four torch threads on a 2-core machine
+if os.environ.get("PYTEST_XDIST_WORKER_COUNT"):
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
 
 
 @pytest.fixture
