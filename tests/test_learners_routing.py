@@ -14,6 +14,8 @@ from agents.models import hybrid
 from agents.models.ensemble import EnsembleDynamics, ModelObjective, k_step_errors, peg_clearance
 from agents.models.networks import Features
 from agents.common.config import InputOptions
+from benchmarks import compare
+from tests.conftest import cli_error
 from diffdlo import contact
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.params import load_params
@@ -292,8 +294,12 @@ def test_the_ensemble_world_model_runs_on_routes_and_its_error_is_split_near_peg
     from benchmarks.studies import planet_budget
     assert planet_budget.main(["--run", str(a), "--out", str(tmp_path / "pb"), "--project-pegs", "0", "1",
                                "--episodes", "2", "--candidates", "8", "--iterations", "1"]) == 0
-    pb = json.loads((tmp_path / "pb" / "results.json").read_text())["rows"]
+    res_pb = json.loads((tmp_path / "pb" / "results.json").read_text())
+    pb = res_pb["rows"]
     assert [r["project_pegs"] for r in pb] == [False, True] and all(len(r["episodes"]) == 2 for r in pb)
+    # each run's results carry its seed and each episode its start (what --pool pairs by); the two rows share them
+    assert res_pb["seed"] == 0                                  # the run's (RunOptions' default)
+    assert [e["start_error"] for e in pb[0]["episodes"]] == [e["start_error"] for e in pb[1]["episodes"]]
     pos, node, drag, pegs, pin = board(load_params("cable"), 4)
     inside = lambda rope, node, drag, pegs=None, pin=None: rope.expand(3, *rope.shape).clone()   # noqa: E731
     deep = pos.clone()
@@ -337,3 +343,46 @@ def test_a_tiny_world_model_run_learns_to_route_a_u(tmp_path):
     res = json.loads((out / "results.json").read_text())
     assert res["success_rate"] >= 0.75, res["success_rate"]
     assert all(e["sides_kept"] for e in res["episodes"] if e["success"])
+
+
+def test_the_budget_study_pools_seeds_and_pairs_them_with_the_committed_cells(tmp_path, capsys):
+    """planet_budget --pool: a row pooled over the seeds' results and paired, episode by episode, with a grid row's
+    committed cells of the same seed and task: two moves more on every episode reads +2.0 moves; an episode whose
+    start differs is left out as mismatched; a record without start errors pairs by index, unverified."""
+    from benchmarks.compare.records import read_records, record_key
+    from benchmarks.studies import planet_budget
+    by = {record_key(r): r for r in read_records()}
+    budget = dict(horizon=1, candidates=300, iterations=3, propagation="members", project_pegs=False)
+    files = []
+    for seed in (0, 1):
+        eps = [dict(e, steps=e["steps"] + 2) for e in by[("cem", "route", "route_hook_wrap", seed)]["episodes"]]
+        eps[0]["start_error"] += 0.01                                             # another start shape
+        row = dict(budget, target="route:hook_wrap", episodes=eps)
+        files.append(tmp_path / f"s{seed}.json")
+        files[-1].write_text(json.dumps({"seed": seed, "rows": [row]}))
+    rows = planet_budget.pooled_pairs(planet_budget.load_pooled([str(f) for f in files]), ["cem/route"],
+                                      read_records(), compare.load_grid())
+    assert len(rows) == 1 and rows[0]["task"] == "route_hook_wrap" and rows[0]["seeds"] == 2
+    p = rows[0]["paired"]["cem/route"]
+    assert (p["pairs"], p["mismatched"], p["unverified"]) == (38, 2, 0)
+    assert p["dm"] and all(d == 2.0 for d in p["dm"]) and all(d == 0.0 for d in p["ds"])
+    # the record form docs/results/ keeps: {"runs": {"seed<N>": results}}, here without start errors
+    bare = {f"seed{s}": {"rows": [dict(budget, target="route:hook_wrap",
+                                       episodes=[{k: e[k] for k in ("success", "steps", "final_error")}
+                                                 for e in by[("cem", "route", "route_hook_wrap", s)]["episodes"]])]}
+            for s in (0, 1)}
+    (tmp_path / "record.json").write_text(json.dumps({"runs": bare}))
+    assert planet_budget.main(["--pool", str(tmp_path / "record.json"), "--pair", "cem/route"]) == 0
+    out = capsys.readouterr().out
+    assert "route_hook_wrap: H=1 candidates=300 iterations=3 members, 2 seeds x 20" in out
+    assert "moves +0.0 [+0.0, +0.0]" in out and "pairs 40 (40 unverifiable)" in out
+    for argv, message in ((["--pool", str(files[0]), str(files[0])], "seed 0 given twice"),
+                          (["--pool", str(files[0]), "--pair", "cem/no_such_row"], "no grid row"),
+                          (["--pool", str(tmp_path / "missing.json")], "not a readable results file"),
+                          (["--pool", str(files[0]), "--run", str(tmp_path)], "without --run and --out"),
+                          (["--run", str(tmp_path), "--out", str(tmp_path / "o"), "--pair", "cem/route"],
+                           "--pair goes with --pool")):
+        assert message in cli_error(planet_budget.main, argv, capsys)
+    (tmp_path / "s9.json").write_text(json.dumps({"seed": 99, "rows": [dict(budget, target="route", episodes=bare["seed0"]["rows"][0]["episodes"])]}))
+    assert "no committed cell of cem/route on route seed 99" in cli_error(
+        planet_budget.main, ["--pool", str(tmp_path / "s9.json"), "--pair", "cem/route"], capsys)

@@ -17,6 +17,13 @@ the pegs (``diffdlo.routing.clear_of_pegs``: the model's rope never inside a peg
 
     python -m benchmarks.studies.planet_budget --run runs/compare_route_wm/pets/route/route/seed0 --project-pegs 0 1 \
         --out runs/planet_project_s0
+
+``--pool`` reads such results (of the runs of several seeds: results.json files, folders holding one, or a record
+{"runs": {"seed<N>": results}} as docs/results/ keeps) and prints each row pooled over them, paired episode by
+episode with the committed cells (docs/results/cells.jsonl) of the grid rows ``--pair`` names, of the same seed and
+task (Δ success and Δ moves over the episodes both solved, 95 % t-intervals):
+
+    python -m benchmarks.studies.planet_budget --pool docs/results/pets_route_budget.json --pair cem/route
 """
 from __future__ import annotations
 
@@ -36,8 +43,13 @@ from agents.common import config
 from agents.common.checkpoints import CHECKPOINT, load_checkpoint
 from agents.common.envs import make_env
 from agents.common.evaluation import evaluate
+from benchmarks.compare.grid import load_grid
+from benchmarks.compare.records import RESULTS_FILE, read_records, record_key
+from benchmarks.compare.summary import paired_differences, paired_texts, pairs
 from diffdlo import routing
 from diffdlo.shapes import TargetError
+
+ROW_KEYS = ("target", "horizon", "candidates", "iterations", "propagation", "project_pegs")
 
 
 def projected(predict, rope_radius: float):
@@ -53,10 +65,84 @@ def projected(predict, rope_radius: float):
     return forward
 
 
+def load_pooled(paths: list[str]) -> dict[int, dict]:
+    """{seed: a run's study results} from results.json files, folders holding one, or records {"runs": {"seed<N>":
+    results}}; a file that is none of these, or a seed given twice, is an error naming it."""
+    out: dict[int, dict] = {}
+    for path in map(Path, paths):
+        file = path / "results.json" if path.is_dir() else path
+        try:
+            data = json.loads(file.read_text())
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"--pool {path}: not a readable results file ({exc})") from None
+        found = ({int(k.removeprefix("seed")): v for k, v in data["runs"].items()} if "runs" in data
+                 else {data["seed"]: data} if "seed" in data and "rows" in data else None)
+        if found is None:
+            raise ValueError(f"--pool {path}: neither this study's results.json (with its seed) nor a record of them "
+                             f"({{'runs': {{'seed<N>': ...}}}})")
+        for seed, res in found.items():
+            if seed in out:
+                raise ValueError(f"--pool {path}: seed {seed} given twice")
+            out[seed] = res
+    return out
+
+
+def pooled_pairs(pooled: dict[int, dict], against: list[str], records: list[dict], grid: dict) -> list[dict]:
+    """Each study row (target, budget, propagation, projection) pooled over the seeds of ``pooled``: its success and
+    moves, and per grid row of ``against`` ("method/variant") the paired differences against that row's committed
+    cell of the same seed and task (episodes matched by index, verified by their start error where both have one)."""
+    task_of = {v: k for k, v in (grid.get("routes") or {}).items()}           # the env's target -> the grid's task
+    by = {record_key(r): r for r in records}
+    groups: dict[tuple, dict[tuple, dict]] = {}
+    for seed, res in sorted(pooled.items()):
+        for row in res["rows"]:
+            key = tuple(row.get(k, False) for k in ROW_KEYS)
+            groups.setdefault(key, {}).update({(seed, i): e for i, e in enumerate(row["episodes"])})
+    out = []
+    targets = list(dict.fromkeys(k[0] for k in groups))                     # each target's rows together
+    for key, eps in sorted(groups.items(), key=lambda kv: (targets.index(kv[0][0]), kv[0][1:])):
+        target = task_of.get(key[0], key[0])
+        solved = [e["steps"] for e in eps.values() if e["success"]]
+        row = {**dict(zip(ROW_KEYS, key)), "task": target, "seeds": len({s for s, _ in eps}), "episodes": len(eps),
+               "success_rate": sum(e["success"] for e in eps.values()) / len(eps),
+               "moves_to_success": sum(solved) / len(solved) if solved else None, "paired": {}}
+        for name in against:
+            method, _, variant = name.partition("/")
+            other = {}
+            for seed in {s for s, _ in eps}:
+                rec = by.get((method, variant, target, seed))
+                if rec is None:
+                    raise ValueError(f"--pair {name}: no committed cell of {name} on {target} seed {seed} in "
+                                     f"{RESULTS_FILE}")
+                other.update({(seed, i): e for i, e in enumerate(rec["episodes"])})
+            pr, unverified, mismatched = pairs(eps, other)
+            ds, dm = paired_differences(pr)
+            row["paired"][name] = {"ds": ds, "dm": dm, "pairs": len(pr), "unverified": unverified,
+                                   "mismatched": mismatched}
+        out.append(row)
+    return out
+
+
+def print_pooled(rows: list[dict]) -> None:
+    for r in rows:
+        moves = "-" if r["moves_to_success"] is None else f"{r['moves_to_success']:.1f}"
+        print(f"{r['task']}: H={r['horizon']} candidates={r['candidates']} iterations={r['iterations']} "
+              f"{r['propagation']}{' projected' if r['project_pegs'] else ''}, {r['seeds']} seeds x "
+              f"{r['episodes'] // max(r['seeds'], 1)}: success {100 * r['success_rate']:.0f} %, moves {moves}")
+        for name, p in r["paired"].items():
+            d_success, d_moves, n = paired_texts(p["ds"], p["dm"], p["pairs"], p["unverified"], p["mismatched"])
+            print(f"    vs {name}: success {d_success} pp, moves {d_moves}, pairs {n}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.studies.planet_budget", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--run", required=True, help="a PlaNet run folder holding checkpoint.pt (model: ensemble)")
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--run", help="a PlaNet run folder holding checkpoint.pt (model: ensemble)")
+    ap.add_argument("--out", help="where results.json goes (with --run)")
+    ap.add_argument("--pool", nargs="+", default=None, metavar="RESULTS",
+                    help="instead of --run: this study's results of several seeds (results.json, its folder, or a "
+                         "record {'runs': {'seed<N>': ...}}), pooled and printed")
+    ap.add_argument("--pair", nargs="+", default=[], metavar="METHOD/VARIANT",
+                    help="with --pool: grid rows whose committed cells each row is paired with (same seed and task)")
     ap.add_argument("--targets", nargs="+", default=None,
                     help="targets to evaluate on (names, families, .npy/.yaml paths; default: the run's target)")
     ap.add_argument("--horizons", type=int, nargs="+", default=None, help="default: the run's horizon")
@@ -70,6 +156,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--overwrite", action="store_true", help="replace an existing results.json under --out")
     args = ap.parse_args(argv)
+    if args.pool is not None:
+        if args.run or args.out:
+            ap.error("--pool reads finished results: give it without --run and --out")
+        grid = load_grid()
+        bad = [p for p in args.pair if p.partition("/")[0] not in grid["methods"]
+               or p.partition("/")[2] not in grid["methods"][p.partition("/")[0]]["variants"]]
+        if bad:
+            ap.error(f"--pair: no grid row {bad} in benchmarks/compare.yaml (method/variant)")
+        try:
+            print_pooled(pooled_pairs(load_pooled(args.pool), args.pair, read_records(), grid))
+        except ValueError as exc:
+            ap.error(str(exc))
+        return 0
+    if not args.run or not args.out:
+        ap.error("give --run and --out (or --pool)")
+    if args.pair:
+        ap.error("--pair goes with --pool")
     for name in ("horizons", "candidates", "iterations"):
         bad = [v for v in getattr(args, name) or [] if v < 1]
         if bad:
@@ -127,7 +230,8 @@ def main(argv: list[str] | None = None) -> int:
                      "plan_ms_per_env_step": 1000 * planner.plan_s / max(planner.planned, 1),
                      "model_evals_per_move": h * c * it * (model.E if prop == "members" else 1),
                      "wall_s": time.perf_counter() - t0,
-                     "episodes": [{k: e[k] for k in ("success", "steps", "final_error")} for e in r["episodes"]]})
+                     "episodes": [{k: e[k] for k in ("success", "steps", "final_error", "start_error", "target_name")
+                                   if k in e} for e in r["episodes"]]})
         row = rows[-1]
         moves = "-" if row["moves_to_success"] is None else f"{row['moves_to_success']:.1f}"
         print(f"{target}: H={h} candidates={c} iterations={it} {prop}{' projected' if project else ''}: success {row['success_rate']:.2f}, "
@@ -135,8 +239,8 @@ def main(argv: list[str] | None = None) -> int:
               f"final error {100 * row['mean_final_error']:.2f} cm, plan {row['plan_ms_per_env_step']:.0f} ms per "
               f"env step ({env.num_envs} ropes together)", flush=True)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps({"run": str(args.run), "episodes": n, "eval_seed": cfg.run.eval_seed,
-                                                  "rows": rows}, indent=2))
+    (out / "results.json").write_text(json.dumps({"run": str(args.run), "seed": cfg.run.seed, "episodes": n,
+                                                  "eval_seed": cfg.run.eval_seed, "rows": rows}, indent=2))
     return 0
 
 
