@@ -75,6 +75,8 @@ class PlaNetConfig:
     propagation: str = option("members", help='ensemble: "members" or "mean", how the planning cost uses it')
     running_weight: float = option(0.5, "[0, inf)",
                                    help="ensemble's planning cost: weight of the mean intermediate shape error")
+    risk: float = option(0.0, "[0, inf)", help="ensemble's planning cost: + risk x the members' std of the cost "
+                                               "(pessimism; propagation 'members')")
     # the latent world model (agents/models/latent.py)
     latent_dim: int = option(128, "[1, inf)", help="latent: the latent state's size")
     latent_kind: str = option("vector", help='latent: "vector" (an MLP latent, stepped in the first move\'s frame) or '
@@ -137,7 +139,10 @@ class PlaNetConfig:
                                  f"'points' or 'perceived' and action 'node' or 'node_pin', got obs "
                                  f"{self.task.obs!r} and action {self.task.action!r} (use --preset rssm)")
         if self.model == "ensemble":
-            check_settings(self.members, self.model_hidden, self.augment, self.frame, self.propagation)
+            check_settings(self.members, self.model_hidden, self.augment, self.frame, self.propagation, self.risk)
+        elif self.risk:
+            raise ValueError(f"risk {self.risk} weighs the ensemble's members' spread of the cost: model "
+                             f"{self.model!r} has no members")
         if self.model == "latent":
             check_latent_settings(self.latent_dim, self.latent_hidden, self.augment, self.frame, self.latent_kind)
             if self.plan_objective != "shape":

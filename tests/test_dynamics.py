@@ -14,7 +14,7 @@ from agents.models.ensemble import EnsembleDynamics, ModelObjective, k_step_erro
 from diffdlo.params import load_params
 from diffdlo.rewards import shape_error
 from diffdlo.simulator import Simulator
-from diffdlo.task import encode_node_action
+from diffdlo.task import decode_node_action, encode_node_action
 
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"
@@ -135,6 +135,40 @@ def test_model_objective_is_the_planners_cost(propagation):
     assert torch.allclose(cost, want[:, None].expand(3, 7), rtol=1e-5)
     with pytest.raises(ValueError, match="propagation"):
         ModelObjective(zero_model(p), ropes, targets, propagation="nope")
+
+
+def test_the_risk_adds_the_members_spread_of_the_cost():
+    """risk r: each candidate costs the members' mean cost plus r x their standard deviation (hand-computed from
+    each member's rollout); risk 0 is the plain mean; a bad risk, or one with nothing to spread, is refused."""
+    p = tiny_params()
+    torch.manual_seed(0)
+    model = EnsembleDynamics(p, members=3, hidden=[8]).eval()
+    ropes, _, _ = random_ropes(p, 2, seed=4)
+    targets, _, _ = random_ropes(p, 2, seed=5)
+    actions = torch.rand(2, 5, 2, 3, generator=torch.Generator().manual_seed(1))
+    node, drag = decode_node_action(actions, p)
+    per_member = []
+    for e in range(3):
+        pos = ropes.float()[:, None].expand(2, 5, p.n_nodes, 2).reshape(10, p.n_nodes, 2)
+        errs = []
+        for t in range(2):
+            pos = model(pos, node.reshape(10, 2)[:, t], drag.reshape(10, 2, 2)[:, t])[e]
+            errs.append(shape_error(pos, targets.float()[:, None].expand(2, 5, p.n_nodes, 2).reshape(10, -1, 2)))
+        per_member.append(errs[1] + 0.5 * errs[0])                # the last error + w x the mean intermediate one
+    per_member = torch.stack(per_member).view(3, 2, 5)
+    for risk in (0.0, 1.5):
+        cost = ModelObjective(model, ropes.float(), targets.float(), 0.5, "members", risk=risk)(actions)
+        want = per_member.mean(0) + risk * per_member.std(0)
+        assert torch.allclose(cost, want, rtol=1e-4, atol=1e-7), (risk, cost, want)
+    assert not torch.allclose(per_member.std(0), torch.zeros(2, 5))          # the members differ: risk matters
+    for kwargs, message in (({"risk": -1.0}, "risk must be a number >= 0"),
+                            ({"risk": 1.0, "propagation": "mean"}, "needs propagation 'members'")):
+        with pytest.raises(ValueError, match=message):
+            ModelObjective(model, ropes, targets, **kwargs)
+    with pytest.raises(ValueError, match="no members to spread"):
+        ModelObjective(zero_model(p, members=1), ropes, targets, risk=1.0)
+    with pytest.raises(ValueError, match="model 'latent' has no members"):
+        load_config(planet.PlaNetConfig, "planet-latent", {"risk": 1.0})
 
 
 def argv(out, total, *extra):

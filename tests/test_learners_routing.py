@@ -376,12 +376,17 @@ def test_the_budget_study_pools_seeds_and_pairs_them_with_the_committed_cells(tm
     out = capsys.readouterr().out
     assert "route_hook_wrap: H=1 candidates=300 iterations=3 members, 2 seeds x 20" in out
     assert "moves +0.0 [+0.0, +0.0]" in out and "pairs 40 (40 unverifiable)" in out
-    for argv, message in ((["--pool", str(files[0]), str(files[0])], "seed 0 given twice"),
+    for argv, message in ((["--pool", str(files[0]), str(files[0])], "seed 0's row {'target': 'route:hook_wrap', "
+                                                                     "'horizon': 1, 'candidates': 300, 'iterations': 3, "
+                                                                     "'propagation': 'members', 'project_pegs': False, "
+                                                                     "'risk': 0.0} is given twice"),
                           (["--pool", str(files[0]), "--pair", "cem/no_such_row"], "no grid row"),
                           (["--pool", str(tmp_path / "missing.json")], "not a readable results file"),
                           (["--pool", str(files[0]), "--run", str(tmp_path)], "without --run and --out"),
                           (["--run", str(tmp_path), "--out", str(tmp_path / "o"), "--pair", "cem/route"],
-                           "--pair goes with --pool")):
+                           "--pair goes with --pool"),
+                          (["--run", str(tmp_path), "--out", str(tmp_path / "o"), "--risks", "1", "-0.5"],
+                           "--risks must be >= 0, got [-0.5]")):
         assert message in cli_error(planet_budget.main, argv, capsys)
     (tmp_path / "s9.json").write_text(json.dumps({"seed": 99, "rows": [dict(budget, target="route", episodes=bare["seed0"]["rows"][0]["episodes"])]}))
     assert "no committed cell of cem/route on route seed 99" in cli_error(

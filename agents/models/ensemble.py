@@ -23,7 +23,8 @@ SIDE_COST per peg on the wrong side) of each rope's own board.
 Ensemble: E members, each fit on its own minibatch (a bootstrap in spirit). Planning cost ``propagation``: "members"
 rolls every candidate through every member and averages the E costs (trajectory sampling with one particle per
 member, deterministic, so CEM's elitism holds); "mean" rolls the members' mean prediction (E times cheaper per step
-in memory, the same compute).
+in memory, the same compute). ``risk`` > 0 (with "members") adds risk x the members' standard deviation of the cost:
+a pessimistic cost, against the planner's choosing the moves the model gets wrong in its own favour.
 """
 from __future__ import annotations
 
@@ -46,8 +47,13 @@ PROPAGATIONS = ("members", "mean")
 
 
 def check_settings(members: int = 5, hidden: Sequence[int] = (200,), augment: Sequence[str] = (),
-                   frame: str = "grasp", propagation: str = "members") -> None:
+                   frame: str = "grasp", propagation: str = "members", risk: float = 0.0) -> None:
     """The ensemble's settings, checked in one place (the model, its objective and PlaNet's config call it)."""
+    if not (isinstance(risk, (int, float)) and not isinstance(risk, bool) and risk >= 0 and math.isfinite(risk)):
+        raise ValueError(f"risk must be a number >= 0, got {risk!r}")
+    if risk and propagation != "members":
+        raise ValueError(f"risk {risk} weighs the members' spread of the cost: it needs propagation 'members', "
+                         f"got {propagation!r}")
     bad = sorted(set(augment) - set(AUGMENTS))
     if bad:
         raise ValueError(f"unknown augment {bad}: use some of {list(AUGMENTS)}")
@@ -251,14 +257,19 @@ class ModelObjective:
     """cost(actions (R, C, H, 3)) -> (R, C): the planners' cost (``planners.objective.sequence_cost``: shape error
     after the last move plus ``running_weight`` times the mean intermediate error) of each rope's candidates,
     rolled out through the model (its ``rollout``: this ensemble, or ``agents.models.latent.LatentWorldModel``,
-    which plans in latent space) in one batched call per step."""
+    which plans in latent space) in one batched call per step; the members' mean cost, plus ``risk`` x their
+    standard deviation."""
 
     def __init__(self, model: nn.Module, ropes: torch.Tensor, targets: torch.Tensor,
-                 running_weight: float = 0.5, propagation: str = "members", pegs: torch.Tensor | None = None):
-        check_settings(propagation=propagation)
+                 running_weight: float = 0.5, propagation: str = "members", pegs: torch.Tensor | None = None,
+                 risk: float = 0.0):
+        check_settings(propagation=propagation, risk=risk)
+        if risk and getattr(model, "E", 1) < 2:
+            raise ValueError(f"risk {risk} weighs the members' spread of the cost: this model has no members to "
+                             f"spread ({type(model).__name__})")
         self.model, self.ropes, self.targets = model, ropes.float(), targets.float()
         self.pegs = None if pegs is None else pegs.float()          # (R, K, 3): each rope's board (a route)
-        self.running_weight, self.propagation = float(running_weight), propagation
+        self.running_weight, self.propagation, self.risk = float(running_weight), propagation, float(risk)
         self.calls = 0
 
     @torch.no_grad()
@@ -280,7 +291,7 @@ class ModelObjective:
         self.calls += 1
         cost = sequence_cost(states, target, self.running_weight, board.get("pegs"))
         if cost.dim() == 2:                                      # one trajectory per member: their mean cost
-            cost = cost.mean(0)
+            cost = cost.mean(0) + self.risk * cost.std(0) if self.risk else cost.mean(0)
         return cost.view(r, c)
 
 
@@ -327,7 +338,7 @@ class ModelPlanner:
             dev = next(self.model.parameters()).device
             pegs = obs["pegs"][idx].to(dev) if "pegs" in obs else None
             obj = ModelObjective(self.model, obs["node_poses"][idx].to(dev), obs["target_poses"][idx].to(dev),
-                                 self.cfg.running_weight, self.cfg.propagation, pegs)
+                                 self.cfg.running_weight, self.cfg.propagation, pegs, self.cfg.risk)
             bests = optimize_together([self.cems[i] for i in rows], obj)
             for i, (best, _) in zip(rows, bests):
                 self.cems[i].shift()

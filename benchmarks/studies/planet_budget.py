@@ -49,7 +49,8 @@ from benchmarks.compare.summary import paired_differences, paired_texts, pairs
 from diffdlo import routing
 from diffdlo.shapes import TargetError
 
-ROW_KEYS = ("target", "horizon", "candidates", "iterations", "propagation", "project_pegs")
+ROW_KEYS = {"target": None, "horizon": None, "candidates": None, "iterations": None, "propagation": None,
+            "project_pegs": False, "risk": 0.0}              # a row's settings (the defaults: rows of older results)
 
 
 def projected(predict, rope_radius: float):
@@ -65,10 +66,10 @@ def projected(predict, rope_radius: float):
     return forward
 
 
-def load_pooled(paths: list[str]) -> dict[int, dict]:
-    """{seed: a run's study results} from results.json files, folders holding one, or records {"runs": {"seed<N>":
-    results}}; a file that is none of these, or a seed given twice, is an error naming it."""
-    out: dict[int, dict] = {}
+def load_pooled(paths: list[str]) -> list[tuple[int, dict]]:
+    """[(seed, a run's study results)] from results.json files, folders holding one, or records {"runs":
+    {"seed<N>": results}}; a file that is none of these is an error naming it."""
+    out: list[tuple[int, dict]] = []
     for path in map(Path, paths):
         file = path / "results.json" if path.is_dir() else path
         try:
@@ -80,24 +81,25 @@ def load_pooled(paths: list[str]) -> dict[int, dict]:
         if found is None:
             raise ValueError(f"--pool {path}: neither this study's results.json (with its seed) nor a record of them "
                              f"({{'runs': {{'seed<N>': ...}}}})")
-        for seed, res in found.items():
-            if seed in out:
-                raise ValueError(f"--pool {path}: seed {seed} given twice")
-            out[seed] = res
+        out.extend(found.items())
     return out
 
 
-def pooled_pairs(pooled: dict[int, dict], against: list[str], records: list[dict], grid: dict) -> list[dict]:
-    """Each study row (target, budget, propagation, projection) pooled over the seeds of ``pooled``: its success and
+def pooled_pairs(pooled: list[tuple[int, dict]], against: list[str], records: list[dict], grid: dict) -> list[dict]:
+    """Each study row (target, budget, propagation, projection, risk) pooled over the seeds of ``pooled`` (a row of
+    one seed given twice is an error): its success and
     moves, and per grid row of ``against`` ("method/variant") the paired differences against that row's committed
     cell of the same seed and task (episodes matched by index, verified by their start error where both have one)."""
     task_of = {v: k for k, v in (grid.get("routes") or {}).items()}           # the env's target -> the grid's task
     by = {record_key(r): r for r in records}
     groups: dict[tuple, dict[tuple, dict]] = {}
-    for seed, res in sorted(pooled.items()):
+    for seed, res in sorted(pooled, key=lambda sr: sr[0]):
         for row in res["rows"]:
-            key = tuple(row.get(k, False) for k in ROW_KEYS)
-            groups.setdefault(key, {}).update({(seed, i): e for i, e in enumerate(row["episodes"])})
+            key = tuple(row.get(k, default) for k, default in ROW_KEYS.items())
+            group = groups.setdefault(key, {})
+            if any(s == seed for s, _ in group):
+                raise ValueError(f"seed {seed}'s row {dict(zip(ROW_KEYS, key))} is given twice")
+            group.update({(seed, i): e for i, e in enumerate(row["episodes"])})
     out = []
     targets = list(dict.fromkeys(k[0] for k in groups))                     # each target's rows together
     for key, eps in sorted(groups.items(), key=lambda kv: (targets.index(kv[0][0]), kv[0][1:])):
@@ -126,8 +128,9 @@ def pooled_pairs(pooled: dict[int, dict], against: list[str], records: list[dict
 def print_pooled(rows: list[dict]) -> None:
     for r in rows:
         moves = "-" if r["moves_to_success"] is None else f"{r['moves_to_success']:.1f}"
+        risk = f" risk {r['risk']:g}" if r["risk"] else ""
         print(f"{r['task']}: H={r['horizon']} candidates={r['candidates']} iterations={r['iterations']} "
-              f"{r['propagation']}{' projected' if r['project_pegs'] else ''}, {r['seeds']} seeds x "
+              f"{r['propagation']}{' projected' if r['project_pegs'] else ''}{risk}, {r['seeds']} seeds x "
               f"{r['episodes'] // max(r['seeds'], 1)}: success {100 * r['success_rate']:.0f} %, moves {moves}")
         for name, p in r["paired"].items():
             d_success, d_moves, n = paired_texts(p["ds"], p["dm"], p["pairs"], p["unverified"], p["mismatched"])
@@ -150,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iterations", type=int, nargs="+", default=None, help="default: the run's iterations")
     ap.add_argument("--propagations", nargs="+", default=None, choices=["members", "mean"],
                     help="default: the run's propagation")
+    ap.add_argument("--risks", type=float, nargs="+", default=None,
+                    help="the planning cost's risk (+ risk x the members' std of the cost; default: the run's)")
     ap.add_argument("--project-pegs", type=int, nargs="+", default=[0], choices=[0, 1],
                     help="1: each predicted rope moved out of the pegs (a run among pegs); default 0")
     ap.add_argument("--episodes", type=int, default=None, help="evaluation episodes (default: the run's)")
@@ -177,6 +182,9 @@ def main(argv: list[str] | None = None) -> int:
         bad = [v for v in getattr(args, name) or [] if v < 1]
         if bad:
             ap.error(f"--{name} must be >= 1, got {bad}")
+    bad = [r for r in args.risks or [] if not r >= 0]
+    if bad:
+        ap.error(f"--risks must be >= 0, got {bad}")
     if args.episodes is not None and args.episodes < 1:
         ap.error(f"--episodes must be >= 1, got {args.episodes}")
     out = Path(args.out)
@@ -193,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     args.candidates = args.candidates or [cfg.candidates]
     args.iterations = args.iterations or [cfg.iterations]
     args.propagations = args.propagations or [cfg.propagation]
+    args.risks = [cfg.risk] if args.risks is None else args.risks
     torch.set_num_threads(args.threads)
     n = args.episodes or cfg.run.eval_episodes
     cfg = config.replace(cfg, device="cpu", env_device="cpu")
@@ -212,18 +221,21 @@ def main(argv: list[str] | None = None) -> int:
     predict = model.forward
     rows = []
     grid = list(itertools.product(targets, args.horizons, args.candidates, args.iterations, args.propagations,
-                                  args.project_pegs))
-    for target, h, c, it, prop, project in tqdm(grid, desc="budgets", file=sys.stderr):
+                                  args.project_pegs, args.risks))
+    for target, h, c, it, prop, project, risk in tqdm(grid, desc="budgets", file=sys.stderr):
         env = envs[str(target)]
         model.forward = projected(predict, params.rope_radius) if project else predict
-        run_cfg = config.replace(cfg, horizon=h, candidates=c, elites=max(1, c // 10), iterations=it,
-                                      propagation=prop)
+        try:
+            run_cfg = config.replace(cfg, horizon=h, candidates=c, elites=max(1, c // 10), iterations=it,
+                                     propagation=prop, risk=risk)
+        except ValueError as exc:
+            ap.error(str(exc))
         planner = planet.make_planner(model, run_cfg, env.core, cfg.run.eval_seed)
         t0 = time.perf_counter()
         r = evaluate(planner, env, n, seed=cfg.run.eval_seed)
         succ = [e for e in r["episodes"] if e["success"]]
         rows.append({"target": str(target), "horizon": h, "candidates": c, "iterations": it, "propagation": prop,
-                     "project_pegs": bool(project),
+                     "project_pegs": bool(project), "risk": risk,
                      "success_rate": r["success_rate"],
                      "moves_to_success": sum(e["steps"] for e in succ) / len(succ) if succ else None,
                      "mean_final_error": r["mean_final_error"],
@@ -234,7 +246,8 @@ def main(argv: list[str] | None = None) -> int:
                                    if k in e} for e in r["episodes"]]})
         row = rows[-1]
         moves = "-" if row["moves_to_success"] is None else f"{row['moves_to_success']:.1f}"
-        print(f"{target}: H={h} candidates={c} iterations={it} {prop}{' projected' if project else ''}: success {row['success_rate']:.2f}, "
+        print(f"{target}: H={h} candidates={c} iterations={it} {prop}{' projected' if project else ''}"
+              f"{f' risk {risk:g}' if risk else ''}: success {row['success_rate']:.2f}, "
               f"moves {moves}, "
               f"final error {100 * row['mean_final_error']:.2f} cm, plan {row['plan_ms_per_env_step']:.0f} ms per "
               f"env step ({env.num_envs} ropes together)", flush=True)
