@@ -388,6 +388,9 @@ def test_the_budget_study_pools_seeds_and_pairs_them_with_the_committed_cells(tm
                           (["--run", str(tmp_path), "--out", str(tmp_path / "o"), "--risks", "1", "-0.5"],
                            "--risks must be >= 0, got [-0.5]")):
         assert message in cli_error(planet_budget.main, argv, capsys)
+    (tmp_path / "bad.json").write_text(json.dumps({"runs": {"seedX": {"rows": []}}}))
+    assert "neither this study's results.json" in cli_error(planet_budget.main, ["--pool", str(tmp_path / "bad.json")],
+                                                             capsys)
     (tmp_path / "s9.json").write_text(json.dumps({"seed": 99, "rows": [dict(budget, target="route", episodes=bare["seed0"]["rows"][0]["episodes"])]}))
     assert "no committed cell of cem/route on route seed 99" in cli_error(
         planet_budget.main, ["--pool", str(tmp_path / "s9.json"), "--pair", "cem/route"], capsys)

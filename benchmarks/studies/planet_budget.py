@@ -76,8 +76,11 @@ def load_pooled(paths: list[str]) -> list[tuple[int, dict]]:
             data = json.loads(file.read_text())
         except (OSError, ValueError) as exc:
             raise ValueError(f"--pool {path}: not a readable results file ({exc})") from None
-        found = ({int(k.removeprefix("seed")): v for k, v in data["runs"].items()} if "runs" in data
-                 else {data["seed"]: data} if "seed" in data and "rows" in data else None)
+        try:
+            found = ({int(k.removeprefix("seed")): v for k, v in data["runs"].items()} if "runs" in data
+                     else {int(data["seed"]): data} if "seed" in data and "rows" in data else None)
+        except (AttributeError, TypeError, ValueError):
+            found = None
         if found is None:
             raise ValueError(f"--pool {path}: neither this study's results.json (with its seed) nor a record of them "
                              f"({{'runs': {{'seed<N>': ...}}}})")
@@ -87,9 +90,9 @@ def load_pooled(paths: list[str]) -> list[tuple[int, dict]]:
 
 def pooled_pairs(pooled: list[tuple[int, dict]], against: list[str], records: list[dict], grid: dict) -> list[dict]:
     """Each study row (target, budget, propagation, projection, risk) pooled over the seeds of ``pooled`` (a row of
-    one seed given twice is an error): its success and
-    moves, and per grid row of ``against`` ("method/variant") the paired differences against that row's committed
-    cell of the same seed and task (episodes matched by index, verified by their start error where both have one)."""
+    one seed given twice is an error): its success and moves, and per grid row of ``against`` ("method/variant") the
+    paired differences against that row's committed cell of the same seed and task (episodes matched by index,
+    verified by their start error where both have one)."""
     task_of = {v: k for k, v in (grid.get("routes") or {}).items()}           # the env's target -> the grid's task
     by = {record_key(r): r for r in records}
     groups: dict[tuple, dict[tuple, dict]] = {}
