@@ -353,21 +353,23 @@ def test_the_budget_study_pools_seeds_and_pairs_them_with_the_committed_cells(tm
     from benchmarks.studies import planet_budget
     by = {record_key(r): r for r in read_records()}
     budget = dict(horizon=1, candidates=300, iterations=3, propagation="members", project_pegs=False)
+    timed = lambda seed: dict(budget, plan_ms_per_env_step=10.0 * (seed + 1))       # noqa: E731
     files = []
     for seed in (0, 1):
         eps = [dict(e, steps=e["steps"] + 2) for e in by[("cem", "route", "route_hook_wrap", seed)]["episodes"]]
         eps[0]["start_error"] += 0.01                                             # another start shape
-        row = dict(budget, target="route:hook_wrap", episodes=eps)
+        row = dict(timed(seed), target="route:hook_wrap", episodes=eps)
         files.append(tmp_path / f"s{seed}.json")
         files[-1].write_text(json.dumps({"seed": seed, "rows": [row]}))
     rows = planet_budget.pooled_pairs(planet_budget.load_pooled([str(f) for f in files]), ["cem/route"],
                                       read_records(), compare.load_grid())
     assert len(rows) == 1 and rows[0]["task"] == "route_hook_wrap" and rows[0]["seeds"] == 2
+    assert rows[0]["plan_ms_per_env_step"] == pytest.approx(15.0)                  # the seeds' mean
     p = rows[0]["paired"]["cem/route"]
     assert (p["pairs"], p["mismatched"], p["unverified"]) == (38, 2, 0)
     assert p["dm"] and all(d == 2.0 for d in p["dm"]) and all(d == 0.0 for d in p["ds"])
     # the record form docs/results/ keeps: {"runs": {"seed<N>": results}}, here without start errors
-    bare = {f"seed{s}": {"rows": [dict(budget, target="route:hook_wrap",
+    bare = {f"seed{s}": {"rows": [dict(timed(s), target="route:hook_wrap",
                                        episodes=[{k: e[k] for k in ("success", "steps", "final_error")}
                                                  for e in by[("cem", "route", "route_hook_wrap", s)]["episodes"]])]}
             for s in (0, 1)}
@@ -375,7 +377,7 @@ def test_the_budget_study_pools_seeds_and_pairs_them_with_the_committed_cells(tm
     assert planet_budget.main(["--pool", str(tmp_path / "record.json"), "--pair", "cem/route"]) == 0
     out = capsys.readouterr().out
     assert "route_hook_wrap: H=1 candidates=300 iterations=3 members, 2 seeds x 20" in out
-    assert "moves +0.0 [+0.0, +0.0]" in out and "pairs 40 (40 unverifiable)" in out
+    assert "moves +0.0 [+0.0, +0.0]" in out and "pairs 40 (40 unverifiable)" in out and "plan 15 ms" in out
     for argv, message in ((["--pool", str(files[0]), str(files[0])], "seed 0's row {'target': 'route:hook_wrap', "
                                                                      "'horizon': 1, 'candidates': 300, 'iterations': 3, "
                                                                      "'propagation': 'members', 'project_pegs': False, "
@@ -391,6 +393,6 @@ def test_the_budget_study_pools_seeds_and_pairs_them_with_the_committed_cells(tm
     (tmp_path / "bad.json").write_text(json.dumps({"runs": {"seedX": {"rows": []}}}))
     assert "neither this study's results.json" in cli_error(planet_budget.main, ["--pool", str(tmp_path / "bad.json")],
                                                              capsys)
-    (tmp_path / "s9.json").write_text(json.dumps({"seed": 99, "rows": [dict(budget, target="route", episodes=bare["seed0"]["rows"][0]["episodes"])]}))
+    (tmp_path / "s9.json").write_text(json.dumps({"seed": 99, "rows": [dict(timed(0), target="route", episodes=bare["seed0"]["rows"][0]["episodes"])]}))
     assert "no committed cell of cem/route on route seed 99" in cli_error(
         planet_budget.main, ["--pool", str(tmp_path / "s9.json"), "--pair", "cem/route"], capsys)

@@ -54,6 +54,9 @@ def check_settings(members: int = 5, hidden: Sequence[int] = (200,), augment: Se
     if risk and propagation != "members":
         raise ValueError(f"risk {risk} weighs the members' spread of the cost: it needs propagation 'members', "
                          f"got {propagation!r}")
+    if risk and members < 2:
+        raise ValueError(f"risk {risk} weighs the members' spread of the cost: a model of {members} member has no "
+                         f"members to spread")
     bad = sorted(set(augment) - set(AUGMENTS))
     if bad:
         raise ValueError(f"unknown augment {bad}: use some of {list(AUGMENTS)}")
@@ -263,10 +266,7 @@ class ModelObjective:
     def __init__(self, model: nn.Module, ropes: torch.Tensor, targets: torch.Tensor,
                  running_weight: float = 0.5, propagation: str = "members", pegs: torch.Tensor | None = None,
                  risk: float = 0.0):
-        check_settings(propagation=propagation, risk=risk)
-        if risk and getattr(model, "E", 1) < 2:
-            raise ValueError(f"risk {risk} weighs the members' spread of the cost: this model has no members to "
-                             f"spread ({type(model).__name__})")
+        check_settings(members=getattr(model, "E", 1), propagation=propagation, risk=risk)   # the latent model: one
         self.model, self.ropes, self.targets = model, ropes.float(), targets.float()
         self.pegs = None if pegs is None else pegs.float()          # (R, K, 3): each rope's board (a route)
         self.running_weight, self.propagation, self.risk = float(running_weight), propagation, float(risk)

@@ -96,6 +96,7 @@ def pooled_pairs(pooled: list[tuple[int, dict]], against: list[str], records: li
     task_of = {v: k for k, v in (grid.get("routes") or {}).items()}           # the env's target -> the grid's task
     by = {record_key(r): r for r in records}
     groups: dict[tuple, dict[tuple, dict]] = {}
+    plan_ms: dict[tuple, float] = {}                                        # summed over the seeds
     for seed, res in sorted(pooled, key=lambda sr: sr[0]):
         for row in res["rows"]:
             key = tuple(row.get(k, default) for k, default in ROW_KEYS.items())
@@ -103,6 +104,7 @@ def pooled_pairs(pooled: list[tuple[int, dict]], against: list[str], records: li
             if any(s == seed for s, _ in group):
                 raise ValueError(f"seed {seed}'s row {dict(zip(ROW_KEYS, key))} is given twice")
             group.update({(seed, i): e for i, e in enumerate(row["episodes"])})
+            plan_ms[key] = plan_ms.get(key, 0.0) + row["plan_ms_per_env_step"]
     out = []
     targets = list(dict.fromkeys(k[0] for k in groups))                     # each target's rows together
     for key, eps in sorted(groups.items(), key=lambda kv: (targets.index(kv[0][0]), kv[0][1:])):
@@ -110,7 +112,8 @@ def pooled_pairs(pooled: list[tuple[int, dict]], against: list[str], records: li
         solved = [e["steps"] for e in eps.values() if e["success"]]
         row = {**dict(zip(ROW_KEYS, key)), "task": target, "seeds": len({s for s, _ in eps}), "episodes": len(eps),
                "success_rate": sum(e["success"] for e in eps.values()) / len(eps),
-               "moves_to_success": sum(solved) / len(solved) if solved else None, "paired": {}}
+               "moves_to_success": sum(solved) / len(solved) if solved else None,
+               "plan_ms_per_env_step": plan_ms[key] / max(len({s for s, _ in eps}), 1), "paired": {}}
         for name in against:
             method, _, variant = name.partition("/")
             other = {}
@@ -134,7 +137,8 @@ def print_pooled(rows: list[dict]) -> None:
         risk = f" risk {r['risk']:g}" if r["risk"] else ""
         print(f"{r['task']}: H={r['horizon']} candidates={r['candidates']} iterations={r['iterations']} "
               f"{r['propagation']}{' projected' if r['project_pegs'] else ''}{risk}, {r['seeds']} seeds x "
-              f"{r['episodes'] // max(r['seeds'], 1)}: success {100 * r['success_rate']:.0f} %, moves {moves}")
+              f"{r['episodes'] // max(r['seeds'], 1)}: success {100 * r['success_rate']:.0f} %, moves {moves}, plan "
+              f"{r['plan_ms_per_env_step']:.0f} ms per env step (seeds' mean)")
         for name, p in r["paired"].items():
             d_success, d_moves, n = paired_texts(p["ds"], p["dm"], p["pairs"], p["unverified"], p["mismatched"])
             print(f"    vs {name}: success {d_success} pp, moves {d_moves}, pairs {n}")
