@@ -56,7 +56,7 @@ from agents.common.run import Run, learner
 from agents.sac import HybridActor
 from diffdlo.utils.checks import check_fields, option
 from diffdlo.rewards import reward as move_reward, shape_error
-from diffdlo.routing import route_errors, simulator_pegs
+from diffdlo.routing import route_errors
 from diffdlo.task import decode_node_action, greedy_drags
 
 NODE_RULES = ("score", "greedy", "gain")
@@ -189,7 +189,7 @@ def move_graph(sim, p, pos: torch.Tensor, target: torch.Tensor, node: torch.Tens
     route the error on the board), all with the graph from drag and pos."""
     action = hybrid.to_env_action(node, drag, p.n_nodes)
     k, delta = decode_node_action(action.to(sim.device, sim.dtype), p)
-    new = sim.move(pos, k, delta, None if pegs is None else simulator_pegs(pegs.to(sim.device, sim.dtype)))
+    new = sim.move(pos, k, delta, None if pegs is None else pegs.to(sim.device, sim.dtype))
     error = shape_error if pegs is None else (lambda x, y: route_errors(x, y).mean(-1))
     r = (move_reward(reward_kind, pos, new, target, pegs) if objective == "reward"
          else error(pos, target).log() - error(new, target).log())

@@ -87,9 +87,10 @@ def gradcheck_move(p: CableParams) -> dict:
 
 # ====================================================================== no rope ends inside a peg
 def random_scenes(p: CableParams, batch: int, seed: int) -> tuple[torch.Tensor, ...]:
-    """Random ropes (the env's sigma) with 4 pegs each (2-30 mm, the unused ones far away: 1-4 in play) scattered
-    around the rope, none touching the start (so every overlap measured comes from the moves); drags of 2 cm to the
-    largest, pins on half of the ropes."""
+    """Random ropes (the env's sigma) with boards of 4 slots (pegs of 2-30 mm, 1-4 in play, the others empty:
+    radius 0) scattered around the rope, none touching the start (so every overlap measured comes from the moves)
+    and each two the rope's diameter apart (the simulator's board rule); drags of 2 cm to the largest, pins on half
+    of the ropes."""
     g = torch.Generator().manual_seed(seed)
     sim = Simulator(p, dtype=F64)
     pos = sim.random_shape(batch, g).double()
@@ -97,10 +98,11 @@ def random_scenes(p: CableParams, batch: int, seed: int) -> tuple[torch.Tensor, 
     anchor = pos[torch.arange(batch)[:, None], torch.randint(0, p.n_nodes, (batch, 4), generator=g)]
     centre = anchor + (radius + p.rope_radius) * 1.5 * torch.randn(batch, 4, 2, generator=g, dtype=F64)
     in_play = torch.arange(4)[None] < torch.randint(1, 5, (batch, 1), generator=g)
-    centre = torch.where(in_play[..., None], centre, centre + 10.0)
     pegs = torch.cat([centre, radius], -1)
-    bad = contact.overlap(pos, pegs, p.rope_radius) > 0                               # (B, L, K): drop those pegs
-    pegs[..., :2] += bad.any(1)[..., None] * 10.0
+    touching = (contact.overlap(pos, pegs, p.rope_radius) > 0).any(1)               # (B, K): drop those pegs
+    gap = (centre[:, :, None] - centre[:, None]).norm(dim=-1) - radius - radius.transpose(1, 2)     # (B, K, K)
+    crowded = ((gap < 2 * p.rope_radius) & torch.ones(4, 4, dtype=torch.bool).tril(-1)).any(2)   # and the later
+    pegs[..., 2] *= (in_play & ~touching & ~crowded).to(F64)        # of two pegs closer than the rope's diameter
     node = torch.randint(0, p.n_nodes, (batch,), generator=g)
     angle = 2 * math.pi * torch.rand(batch, generator=g, dtype=F64)
     length = torch.where(torch.rand(batch, generator=g) < 0.5, torch.full((batch,), p.max_disp, dtype=F64),
@@ -109,6 +111,70 @@ def random_scenes(p: CableParams, batch: int, seed: int) -> tuple[torch.Tensor, 
     pin = torch.randint(0, p.n_nodes, (batch,), generator=g)
     pin = torch.where((pin == node) | (torch.rand(batch, generator=g) < 0.5), -1, pin)
     return pos, pegs, node, delta, pin
+
+
+def path_scenes(p: CableParams, batch: int, seed: int, slots: int = 4, small: tuple[float, float] = (0.002, 0.008),
+                pins: bool = True) -> tuple[torch.Tensor, ...]:
+    """The hard case for putting the rope down: random ropes and drags (4-10 cm) with 1-``slots`` pegs, the first a
+    small one (radius in ``small``) on the grasped node's path past half of it, so that the lifted links are carried
+    over it and put down across it; the others beside the path; none touching the start rope nor the drag's end,
+    each two the rope's diameter apart; pins on half of the ropes with ``pins``. Returns (pos, pegs (B, slots, 3)
+    with empty rows of radius 0, node, delta, pin)."""
+    g = torch.Generator().manual_seed(seed)
+    sim = Simulator(p, dtype=F64)
+    pos = sim.random_shape(batch, g).double()
+    node = torch.randint(0, p.n_nodes, (batch,), generator=g)
+    angle = 2 * math.pi * torch.rand(batch, generator=g, dtype=F64)
+    along = torch.stack([angle.cos(), angle.sin()], -1)
+    delta = (0.04 + 0.06 * torch.rand(batch, generator=g, dtype=F64))[:, None] * along
+    start = pos[torch.arange(batch), node]
+    across = torch.stack([-along[:, 1], along[:, 0]], -1)
+    pegs = torch.zeros(batch, slots, 3, dtype=F64)
+    unit = lambda: float(torch.rand(1, generator=g, dtype=F64))
+    for b in range(batch):
+        want, k = int(torch.randint(1, slots + 1, (1,), generator=g)), 0
+        for attempt in range(100):
+            if k == want:
+                break
+            if attempt == 0:                   # small, on the path near its end: carried over, put down across it
+                radius = small[0] + (small[1] - small[0]) * unit()
+                centre = start[b] + (0.55 + 0.4 * unit()) * delta[b] + 0.004 * (2 * unit() - 1) * across[b]
+            else:                              # beside the path
+                radius = 0.004 + 0.012 * unit()
+                side = 1.0 if unit() < 0.5 else -1.0
+                centre = start[b] + unit() * delta[b] + side * (radius + 0.02 * unit()) * across[b]
+            peg = torch.cat([centre, torch.tensor([radius], dtype=F64)])
+            if float(contact.overlap(pos[b:b + 1], peg[None, None], p.rope_radius).max()) > 0:
+                continue
+            if float((start[b] + delta[b] - centre).norm()) < radius + 0.002:
+                continue
+            gaps = (pegs[b, :k, :2] - centre).norm(dim=-1) - pegs[b, :k, 2] - radius
+            if bool((gaps < 2 * p.rope_radius).any()):
+                continue
+            pegs[b, k] = peg
+            k += 1
+    pin = torch.randint(0, p.n_nodes, (batch,), generator=g)
+    pin = torch.where((pin == node) | (torch.rand(batch, generator=g) < 0.5) | (not pins), -1, pin)
+    return pos, pegs, node, delta, pin
+
+
+def put_down(p: CableParams, batch: int = 512, batches: int = 8, seed: int = 0) -> dict:
+    """``path_scenes``' moves (``batches`` x ``batch``), each followed by a second move from its result: how many
+    ended with the rope's axis inside a peg before it was put down (pushed out; let go earlier), the deepest overlap
+    after, and whether every next move accepted its start."""
+    sim = Simulator(p, dtype=F64)
+    pushed = early = 0
+    deepest = -1.0
+    t0 = time.perf_counter()
+    for i in range(batches):
+        pos, pegs, node, delta, pin = path_scenes(p, batch, seed + i)
+        out, info = sim.move(pos, node, delta, pegs, pin, return_info=True)
+        sim.move(out, node, -0.5 * delta, pegs)                  # raises if a result is no valid start
+        pushed += int(info.pushed_out.sum())
+        early += int((info.drag_share < 1).sum())
+        deepest = max(deepest, float(contact.depth(out, pegs, p.rope_radius).max()))
+    return {"moves": batch * batches, "pushed_out": pushed, "let_go_earlier": early, "deepest_after": deepest,
+            "engine": sim.contact_engine, "seconds": time.perf_counter() - t0}
 
 
 def max_depth(p: CableParams, batch: int = 256, moves: int = 3, seed: int = 0, every: int = 10) -> dict:
@@ -337,6 +403,7 @@ def run_all(p: CableParams | None = None, scenes: int = 256) -> dict:
     p = p or load_params("cable")
     t0 = time.perf_counter()
     res = {"forces": forces_vs_autograd(p), "gradcheck": gradcheck_move(p), "depth": max_depth(p, scenes),
+           "put_down": put_down(p),
            "largest_pull": largest_pull(p), "wrap": wrap(p), "conservation": conservation(p),
            "gradient_quality": gradient_quality(p), "sawtooth": sawtooth(p)}
     res["seconds"] = time.perf_counter() - t0
@@ -346,6 +413,7 @@ def run_all(p: CableParams | None = None, scenes: int = 256) -> dict:
 def rows(res: dict, cmd: str = "`python -m benchmarks.contact_checks`") -> list[str]:
     """Markdown rows: the checks (the physics table's columns), then the gradient-quality table."""
     fo, gc, de, lp, wr = res["forces"], res["gradcheck"], res["depth"], res["largest_pull"], res["wrap"]
+    pd = res["put_down"]
     out = [
         f"| contact forces vs -grad of the contact energy, {fo['ropes']} random ropes among 4 pegs, links lifted | "
         f"equal | max rel. error {fo['max_rel_error']:.1e} ({fo['pairs_in_contact']} link-peg pairs touching, "
@@ -357,6 +425,11 @@ def rows(res: dict, cmd: str = "`python -m benchmarks.contact_checks`") -> list[
         f"< the rope's radius (5 mm: its axis outside) | links on the table during the drag "
         f"{de['deepest_drag_on_table'] * 1e3:.2f} mm; after the move {de['deepest_after'] * 1e3:.2f} mm (median of "
         f"those touching {de['median_after_touching'] * 1e3:.2f} mm) | {cmd} |",
+        f"| putting the rope down: {pd['moves']} moves with a small peg (2-8 mm) on the grasped node's path and "
+        f"0-3 beside it, pins on half; {pd['pushed_out']} left by the settle with an axis inside a peg and pushed "
+        f"out, {pd['let_go_earlier']} let go earlier | every result a valid start (its axis outside every peg) | "
+        f"deepest overlap after the move {pd['deepest_after'] * 1e3:.2f} mm; every next move accepted its start "
+        f"({pd['engine']}) | {cmd} |",
         f"| a wrapped rope pinned at one end, its other end dragged 0.1 m away 3 times (stretched "
         f"{lp['stretch'] * 100:.0f} %) | not pulled through | deepest {lp['deepest'] * 1e3:.2f} mm, winding "
         f"{lp['winding'] / math.pi:.2f} pi | {cmd} |",

@@ -54,6 +54,12 @@ class Physics:
             if bad:
                 raise ValueError(f"physics.{key} must be {'>= 0' if key == 'k_b' else '> 0'} and finite, got {bad}")
 
+    def take(self, ropes: torch.Tensor) -> "Physics":
+        """The parameters of the ropes ``ropes`` (an index tensor) of the batch: per-rope tensors indexed, shared
+        values as they are."""
+        pick = lambda v: v[ropes] if torch.is_tensor(v) and v.ndim == 1 else v
+        return Physics(**{key: pick(getattr(self, key)) for key in PHYSICAL})
+
     def node_mass(self, n_nodes: int) -> Any:
         return self.mass / n_nodes
 

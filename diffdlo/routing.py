@@ -107,13 +107,7 @@ def clear_of_pegs(pos: torch.Tensor, pegs: torch.Tensor, rope_radius: float, ite
                            torch.tensor([1.0, 0.0], dtype=pos.dtype, device=pos.device))
         inside = (dist < reach) & real[:, k, None, None]
         out = torch.where(inside, peg[..., :2] + side * reach, out)
-    for _ in range(iterations):
-        _, r, d = contact.closest_points(out, pegs)                       # (B, L, K, 2), (B, L, K)
-        push = torch.where(real[:, None, :], pegs[:, None, :, 2] + rope_radius - d, torch.zeros_like(d))
-        if float(push.max()) <= 1e-4:
-            break
-        shift = (push.clamp_min(0.0)[..., None] * r / d[..., None]).sum(2)   # (B, L, 2) per link
-        out = out + torch.nn.functional.pad(shift, (0, 0, 0, 1)) + torch.nn.functional.pad(shift, (0, 0, 1, 0))
+    out, _ = contact.push_out(out, pegs, rope_radius, 1e-4, iterations)
     return out[0] if single else out
 
 
@@ -133,20 +127,17 @@ class Layout:
         if pegs.ndim != 2 or pegs.shape[-1] != 3 or pegs.shape[0] == 0:
             raise LayoutError(f"layout {self.name!r}: pegs must be a (K, 3) array of (x, y, radius) [m] with K >= 1 "
                               f"(a route needs a peg), got shape {tuple(pegs.shape)}")
+        if bool((pegs[:, 2] <= 0).any()):
+            raise LayoutError(f"layout {self.name!r}: a peg's radius must be > 0 m (a layout lists its pegs, no empty "
+                              f"slots), got {pegs[:, 2][pegs[:, 2] <= 0].tolist()}")
         try:
-            pegs = contact.check_pegs(pegs, 1, torch.float64, torch.device("cpu"))[0]
+            pegs = contact.check_pegs(pegs, 1, torch.float64, torch.device("cpu"), p.rope_radius)[0]
         except contact.PegError as exc:
             raise LayoutError(f"layout {self.name!r}: {exc}") from exc
         try:
             check_target(route, p, f"layout {self.name!r}: the route")
         except TargetError as exc:
             raise LayoutError(str(exc)) from exc
-        gap = (pegs[:, None, :2] - pegs[None, :, :2]).norm(dim=-1) - pegs[:, None, 2] - pegs[None, :, 2]
-        gap = gap + torch.diag(torch.full((len(pegs),), math.inf, dtype=torch.float64))
-        if bool((gap < 0).any()):
-            i, j = (int(v) for v in (gap < 0).nonzero()[0])
-            raise LayoutError(f"layout {self.name!r}: pegs {i} {pegs[i].tolist()} and {j} {pegs[j].tolist()} "
-                              f"overlap by {-float(gap[i, j]) * 1e3:.3g} mm")
         overlap = contact.overlap(route[None], pegs[None], p.rope_radius)[0]          # (L, K)
         if bool((overlap > 0).any()):
             link, k = (int(v) for v in (overlap > 0).nonzero()[0])
@@ -285,14 +276,3 @@ def padded(pegs: torch.Tensor, slots: int) -> torch.Tensor:
     if len(pegs) > slots:
         raise LayoutError(f"a layout of {len(pegs)} pegs does not fit the env's max_pegs={slots}")
     return torch.cat([pegs, pegs.new_zeros(slots - len(pegs), 3)])
-
-
-# Where the simulator is given the padding's empty rows: a peg far off the board (one distance test per link).
-FAR_PEG = (1.0e3, 1.0e3, 1.0e-3)
-
-
-def simulator_pegs(pegs: torch.Tensor) -> torch.Tensor:
-    """(B, K, 3) pegs with empty rows (radius 0) -> the same with those rows moved far off the board, as
-    ``Simulator.move`` takes them (it refuses a radius of 0)."""
-    far = torch.tensor(FAR_PEG, dtype=pegs.dtype, device=pegs.device).expand_as(pegs)
-    return torch.where((pegs[..., 2:] > 0), pegs, far)

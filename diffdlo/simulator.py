@@ -24,9 +24,16 @@ DIVERGENCE_RADIUS = 100.0
 # near it: after random 0.1 m moves the shortest link is ~90% of the rest length (default params, both controllers)
 # and ~10% with 1 m/s drags and no settling on a 6-node rope.
 MIN_STATE_LINK_FRACTION = 0.01
-# A start state may overlap a peg by at most the rope's radius (its axis outside the peg): the depth no move ends
-# deeper than (tests/test_contact.py, benchmarks/physics_checks.py), so a move's result is always a valid start.
+# A start state may overlap a peg by at most the rope's radius (its axis outside the peg). No move ends deeper: a
+# rope the settle leaves with its axis inside a peg (pressed in by the rope's own tension, wedged between pegs, or a
+# lifted link released across one, where the penalty's compliance is the model's, not the post's) is pushed out at
+# the end of the move to PUSH_OUT_CLEARANCE_RADII of the rope's radius clear of the axis (contact.push_out), so a
+# move's result is always a valid start (tests/test_contact.py, benchmarks/physics_checks.py).
 MAX_START_DEPTH_RADII = 1.0
+PUSH_OUT_CLEARANCE_RADII = 0.02
+PUSH_OUT_ITERATIONS = 1000
+# A rope that no push-out gets out is moved again with the gripper letting go at these shares of its drag, in turn.
+LET_GO_EARLIER = (0.5, 0.25, 0.0)
 
 
 class SimulationError(RuntimeError):
@@ -41,6 +48,9 @@ class MoveInfo:
     settle_substeps: torch.Tensor    # substeps of free evolution after release
     settled: torch.Tensor            # bool: reached the speed threshold (False: stopped by the cap)
     frames: torch.Tensor | None = None   # (T, B, N, 2) positions every ``record_every`` substeps, if asked
+    pushed_out: torch.Tensor | None = None   # bool: the settle left the rope's axis inside a peg, pushed out after
+    drag_share: torch.Tensor | None = None   # float64: the share of the drag done before the release (1 unless the
+                                             # gripper let go earlier so as not to put the rope down inside a peg)
 
     @property
     def substeps(self) -> torch.Tensor:
@@ -76,6 +86,19 @@ def _resolve_engine(params: CableParams, device: torch.device, backend: str) -> 
         why_not["triton"] = reason
     engine = next(name for name in ENGINES if name == "torch" or name not in why_not)
     return engine, why_not
+
+
+def _merge_frames(frames: torch.Tensor, sub: torch.Tensor, where: torch.Tensor) -> torch.Tensor:
+    """(T, B, N, 2) frames with the ropes ``where`` (b,) replaced by ``sub`` (T', b, N, 2), the shorter of the two
+    runs padded with its last frame."""
+    length = max(frames.shape[0], sub.shape[0])
+
+    def pad(f: torch.Tensor) -> torch.Tensor:
+        return torch.cat([f, f[-1:].expand(length - f.shape[0], *f.shape[1:])]) if f.shape[0] < length else f
+
+    frames, sub = pad(frames), pad(sub.to(frames))
+    index = where.view(1, -1, 1, 1).expand(length, -1, *frames.shape[2:])
+    return frames.scatter(1, index, sub)
 
 
 class Simulator:
@@ -181,7 +204,7 @@ class Simulator:
         if pegs is None:
             return None
         check_contact_stability(self.params)
-        pegs = contact.check_pegs(pegs, pos.shape[0], self.dtype, self.device)
+        pegs = contact.check_pegs(pegs, pos.shape[0], self.dtype, self.device, self.params.rope_radius)
         limit = MAX_START_DEPTH_RADII * self.params.rope_radius
         with torch.no_grad():
             if self.contact_engine == "kernel":       # the same test in C++, torch only to name a failure
@@ -333,9 +356,21 @@ class Simulator:
         pin = self._check_pin(pin, node)
         if pin is not None and not bool((pin >= 0).any()):
             pin = None
-        engine = self.engine if pegs is None and pin is None else self.contact_engine
-
         delta = control.clip_drag(delta, p.max_disp)
+        result = self._run_move(pos, vel, node, delta, pegs, pin, physics, record_every, return_info,
+                                differentiable_frames)
+        if pegs is None:
+            if return_info:
+                result[1].pushed_out = torch.zeros(batch, dtype=torch.bool)
+                result[1].drag_share = torch.ones(batch, dtype=torch.float64)
+            return result if return_info else result[0]
+        return self._put_down(result, pos, vel, node, delta, pegs, pin, physics, record_every, return_info,
+                              differentiable_frames)
+
+    def _run_move(self, pos, vel, node, delta, pegs, pin, physics, record_every, return_info, differentiable_frames):
+        """One move of checked inputs (``delta`` clipped) on the engine that runs it: (pos, MoveInfo or None)."""
+        p = self.params
+        engine = self.engine if pegs is None and pin is None else self.contact_engine
         distance = delta.norm(dim=-1)
         speed = control.drag_speed(distance, p)
         path_steps = control.path_substeps(distance, p)                       # (B,) on device
@@ -347,16 +382,87 @@ class Simulator:
                                          record_every=every, pegs=pegs, pin=pin)
             else:
                 out = self._triton_apply(pos, vel, node, delta, path_steps, -1, physics, every)
-            return self._fused_result(out, node, delta, path_steps, return_info, every, differentiable_frames)
-        pos, _, grasp_steps_cpu, finished_at, settled, frames = self._move_eager(
+            result = self._fused_result(out, node, delta, path_steps, return_info, every, differentiable_frames)
+            return result if return_info else (result, None)
+        new_pos, _, grasp_steps_cpu, finished_at, settled, frames = self._move_eager(
             pos, vel, node, delta, speed, path_steps, physics, record_every, differentiable_frames, pegs, pin)
         if not return_info:
-            return pos
-        if frames is not None and frames[-1] is not pos:
-            frames.append(pos if differentiable_frames else pos.detach().clone())
-        info = MoveInfo(drag_substeps=grasp_steps_cpu, settle_substeps=finished_at - grasp_steps_cpu,
-                        settled=settled, frames=torch.stack(frames) if frames is not None else None)
-        return pos, info
+            return new_pos, None
+        if frames is not None and frames[-1] is not new_pos:
+            frames.append(new_pos if differentiable_frames else new_pos.detach().clone())
+        return new_pos, MoveInfo(drag_substeps=grasp_steps_cpu, settle_substeps=finished_at - grasp_steps_cpu,
+                                 settled=settled, frames=torch.stack(frames) if frames is not None else None)
+
+    def _put_down(self, result, pos, vel, node, delta, pegs, pin, physics, record_every, return_info,
+                  differentiable_frames):
+        """A move's result with every rope's axis out of every peg, so a valid start for the next move; the ropes
+        already out bit for bit as they were. A rope the settle left with its axis inside a peg is pushed out
+        (``contact.push_out``, keeping its links' lengths); one that cannot be (a lifted link put down across a
+        small peg and held there by the rope's tension) is moved again with the gripper letting go earlier on its
+        path, at each share of LET_GO_EARLIER in turn (0: no drag, a settle from the valid start), pushed out if
+        need be, the first that gets out kept. MoveInfo flags ``pushed_out`` and gives ``drag_share``; its frames
+        end on the returned state. SimulationError naming the rope if none gets it out."""
+        r = self.params.rope_radius
+        clearance = PUSH_OUT_CLEARANCE_RADII * r
+        new_pos, info = result
+        batch, device = new_pos.shape[0], new_pos.device
+        pushed = torch.zeros(batch, dtype=torch.bool)
+        share = torch.ones(batch, dtype=torch.float64)
+        reruns = []                                    # (ropes, their MoveInfo rows) of the moves made again
+        todo = self._inside(new_pos, pegs, clearance)
+        for drag_share in (1.0, *LET_GO_EARLIER):
+            if not bool(todo.any()):
+                break
+            ids = todo.nonzero().flatten()
+            at = ids.to(device)
+            if drag_share == 1.0:
+                candidate = new_pos[at]
+            else:                                      # the same move, the gripper letting go earlier
+                candidate, sub_info = self._run_move(
+                    pos[at], vel[at], node[at], delta[at] * drag_share, pegs[at], None if pin is None else pin[at],
+                    None if physics is None else physics.take(at), record_every, return_info, differentiable_frames)
+            still = self._inside(candidate, pegs[at], clearance)
+            got_out = ~still
+            if bool(still.any()):
+                rows = still.nonzero().flatten()
+                moved, lack = contact.push_out(candidate[rows.to(device)], pegs[at[rows.to(device)]],
+                                               2.0 * clearance, clearance, PUSH_OUT_ITERATIONS, keep_lengths=True)
+                candidate = candidate.index_put((rows.to(device),), moved)
+                cleared = (lack <= clearance).cpu()
+                got_out[rows[cleared]] = True
+                pushed[ids[rows[cleared]]] = True
+            kept = got_out.nonzero().flatten()
+            new_pos = new_pos.index_put((at[kept.to(device)],), candidate[kept.to(device)])
+            share[ids[kept]] = drag_share
+            if drag_share < 1.0 and info is not None:
+                reruns.append((ids[kept], sub_info, kept))
+            todo[ids[kept]] = False
+        if bool(todo.any()):
+            b = int(todo.nonzero()[0])
+            raise SimulationError(f"rope {b}'s move ends with its axis inside a peg of "
+                                  f"{[[round(v, 4) for v in row] for row in pegs[b].tolist()]} and neither a push-out "
+                                  f"nor an earlier release gets it out (node={int(node[b])}, "
+                                  f"delta={delta[b].tolist()})")
+        if info is None:
+            return new_pos
+        for ids, sub, kept in reruns:
+            info.drag_substeps[ids] = sub.drag_substeps[kept]
+            info.settle_substeps[ids] = sub.settle_substeps[kept]
+            info.settled[ids] = sub.settled[kept]
+            if info.frames is not None:
+                info.frames = _merge_frames(info.frames, sub.frames[:, kept.to(sub.frames.device)],
+                                            ids.to(info.frames.device))
+        if info.frames is not None and bool((share < 1).any() or pushed.any()):
+            last = new_pos if differentiable_frames else new_pos.detach().clone()
+            info.frames = torch.cat([info.frames, last.to(info.frames.device)[None]])
+        info.pushed_out, info.drag_share = pushed, share
+        return new_pos, info
+
+    def _inside(self, pos: torch.Tensor, pegs: torch.Tensor, clearance: float) -> torch.Tensor:
+        """(B,) bool on the CPU: a rope's axis within ``clearance`` of being inside a peg (the push-out's trigger)."""
+        r = self.params.rope_radius
+        with torch.no_grad():
+            return (contact.overlap(pos.detach(), pegs, r) > r - clearance).flatten(1).any(1).cpu()
 
     def _move_eager(self, pos, vel, node, delta, speed, path_steps, physics=None, record_every=0,
                     differentiable_frames=False, pegs=None, pin=None):

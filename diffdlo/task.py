@@ -9,7 +9,7 @@ call these functions rather than restating them:
 - actions: ``decode_node`` / ``decode_drag`` / ``encode_node_action`` (the node action, eq 2.6),
   ``decode_pixel_node`` (the pixel action, eq 2.5), ``decode_action`` (either);
 - the greedy move (the node farthest from its place, dragged towards it): ``greedy_drags``;
-- rewards, success and episode end: ``step_outcome`` (its success test ``is_success``), by the env's options
+- rewards, success and episode end: ``step_outcome`` (its success test ``task_success``), by the env's options
   (``diffdlo.envs.EnvOptions``; the rewards and the errors themselves are in diffdlo/rewards.py, eq 2.7-2.11);
 - observations: ``observation_space`` and ``observe``.
 
@@ -207,17 +207,14 @@ def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torc
     success_worst_tol, max_steps, success_bonus, step_penalty, on_exit, exit_penalty and workspace (thesis
     Algorithm 2 with the error metric; the options after max_steps are ours, off by default).
 
-    Returns (reward, terminated, truncated, success), each (B,). Success (``is_success``): shape_error <
+    Returns (reward, terminated, truncated, success), each (B,). Success (``task_success``): shape_error <
     success_tol and, when success_worst_tol is set, worst_node_error < success_worst_tol; it terminates with reward
-    success_bonus. A route (``pegs`` (B, K, 3) given) is measured on the board (``route_success``). A node outside the workspace rectangle (centred at the origin) truncates
-    the episode (on_exit "truncate", Algorithm 2) or terminates it with reward -exit_penalty (on_exit "fail");
+    success_bonus. The test is ``task_success`` (a route, ``pegs`` (B, K, 3) given: ``route_success``, on the board).
+    A node outside the workspace rectangle (centred at the origin) truncates the episode (on_exit "truncate", Algorithm 2) or terminates it with reward -exit_penalty (on_exit "fail");
     reaching max_steps truncates. Every other move gets the named reward minus step_penalty.
     """
     r = move_reward(rules.reward, prev, new, target, pegs)
-    if pegs is None:
-        success = is_success(new, target, rules.success_tol, rules.success_worst_tol)
-    else:
-        success = route_success(new, target, pegs, rules.success_tol, rules.success_worst_tol)
+    success = task_success(new, target, rules.success_tol, rules.success_worst_tol, pegs)
     half = torch.tensor(rules.workspace, device=new.device, dtype=new.dtype) / 2
     outside = (new.abs() > half).flatten(1).any(1) & ~success
     failed = outside if rules.on_exit == "fail" else torch.zeros_like(outside)
@@ -225,6 +222,16 @@ def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torc
     truncated = ~terminated & ((steps >= rules.max_steps) | outside)
     r = torch.where(success, torch.full_like(r, rules.success_bonus), r - rules.step_penalty)
     return torch.where(failed, torch.full_like(r, -rules.exit_penalty), r), terminated, truncated, success
+
+
+def task_success(pos: torch.Tensor, target: torch.Tensor, tol: float, worst_tol: float | None = None,
+                 pegs: torch.Tensor | None = None) -> torch.Tensor:
+    """(B,) bool: THE success test, the one that ends an episode, pays its bonus and is reported as
+    ``info["is_success"]`` (``step_outcome`` and ``task_metrics`` both call it): a shape ``is_success``, a route
+    (``pegs`` given) ``route_success``."""
+    if pegs is None:
+        return is_success(pos, target, tol, worst_tol)
+    return route_success(pos, target, pegs, tol, worst_tol)
 
 
 def route_success(pos: torch.Tensor, route: torch.Tensor, pegs: torch.Tensor, tol: float,
@@ -239,15 +246,14 @@ def task_metrics(pos: torch.Tensor, target: torch.Tensor, success_tol: float,
                  success_worst_tol: float | None = None, pegs: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """The per-rope figures an env reports after every reset and move: shape_error [m] (the mean node distance),
     worst_node_error [m] (the largest), orientation_error [rad], sides_kept (every peg on the route's side; True
-    without pegs), is_success (``is_success``'s test). For a route (``pegs`` given) the distances are on the board
-    and success is ``route_success``."""
+    without pegs), is_success (``task_success``, the test that ends the episode). For a route (``pegs`` given) the
+    distances are on the board."""
     errors = node_errors(pos, target) if pegs is None else routing.route_errors(pos, target)
-    err, worst = errors.mean(-1), errors.amax(-1)
     sides = (torch.ones(pos.shape[0], dtype=torch.bool, device=pos.device) if pegs is None
              else routing.sides_kept(pos, target, pegs))
-    return {"shape_error": err.detach(), "worst_node_error": worst.detach(),
+    return {"shape_error": errors.mean(-1).detach(), "worst_node_error": errors.amax(-1).detach(),
             "orientation_error": orientation_error(pos, target).detach(), "sides_kept": sides,
-            "is_success": within_tolerance(err, worst, success_tol, success_worst_tol) & sides}
+            "is_success": task_success(pos, target, success_tol, success_worst_tol, pegs)}
 
 
 # ====================================================================== observations

@@ -40,10 +40,14 @@ def rope8(params):
 
 def place(pos, p, b, pegs, slot, centre, radius):
     """Put peg ``slot`` of rope b at centre (x, y) with ``radius`` if the start state allows it (its axis clear of
-    every peg, an overlap of at most 0.9 rope radii); returns whether it did."""
+    every peg, an overlap of at most 0.9 rope radii) and the board does (the rope's diameter between any two pegs);
+    returns whether it did."""
     trial = pegs[b].clone()
     trial[slot] = torch.tensor([float(centre[0]), float(centre[1]), radius], dtype=pegs.dtype)
     if float(contact.overlap(pos[b:b + 1], trial[None, :slot + 1], p.rope_radius).max()) > 0.9 * p.rope_radius:
+        return False
+    gaps = (trial[:slot, :2] - trial[slot, :2]).norm(dim=-1) - trial[:slot, 2] - radius
+    if bool((gaps < 2 * p.rope_radius).any()):
         return False
     pegs[b] = trial
     return True

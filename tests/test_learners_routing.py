@@ -279,7 +279,6 @@ def test_the_ensemble_world_model_runs_on_routes_and_its_error_is_split_near_peg
     # the model-error study among pegs: the model predicts with the board and the pin; the simulator as the
     # predictor (with the same pegs and pin) misses nothing, so its bookkeeping on the board is right
     from benchmarks.studies import model_error
-    from diffdlo.routing import simulator_pegs
     res = model_error.closed_loop_moves(a, episodes=2, seed=5)
     split = res["near_pegs"]
     assert split is not None and split["moves_near"] + split["moves_far"] >= len(res["moves"])
@@ -287,7 +286,7 @@ def test_the_ensemble_world_model_runs_on_routes_and_its_error_is_split_near_peg
     exact = model_error.closed_loop_moves(
         a, episodes=2, seed=5,
         predict=lambda rope, node, drag, pegs, pin: sim.move(rope.double(), node, drag.double(),
-                                                             simulator_pegs(pegs.double()), pin))
+                                                             pegs.double(), pin))
     assert max(m["miss_worst"] for m in exact["moves"]) < 1e-4
     assert [m["error_before"] for m in exact["moves"]] == [m["error_before"] for m in res["moves"]]
     # planning with the predictions moved out of the pegs (benchmarks.studies.planet_budget --project-pegs)
@@ -306,7 +305,7 @@ def test_the_ensemble_world_model_runs_on_routes_and_its_error_is_split_near_peg
     deep[:, 10] = pegs[:, 0, :2]                              # a node at a peg's centre
     out = planet_budget.projected(inside, 0.005)(deep, node, drag, pegs)
     assert out.shape == (3, 4, *pos.shape[1:])
-    assert float(contact.depth(out.reshape(-1, *pos.shape[1:]), simulator_pegs(pegs).repeat(3, 1, 1), 0.005).max()) <= 1e-3
+    assert float(contact.depth(out.reshape(-1, *pos.shape[1:]), pegs.repeat(3, 1, 1), 0.005).max()) <= 1e-3
 
 
 def test_apg_among_pegs_moves_the_rope_with_the_pegs(tmp_path):

@@ -81,7 +81,7 @@ def test_a_pin_action_moves_the_rope_as_the_simulator_with_that_pin():
     assert task.decode_pin(torch.tensor([float(task.encode_pin(torch.tensor(0), n))]), torch.tensor([0]), n).item() == -1
     core.step(a)
     node, drag = torch.tensor([0, 0]), torch.tensor([[0.1, 0.0], [0.1, 0.0]])          # node 0 by (0.1, 0)
-    pegs = routing.simulator_pegs(state.pegs)
+    pegs = state.pegs
     pinned = core.sim.move(state.pos, node, drag, pegs, torch.tensor([-1, 3]))
     torch.testing.assert_close(core.get_state().pos, pinned, rtol=0, atol=1e-6)
     free = core.sim.move(state.pos, node, drag, pegs)
@@ -143,7 +143,7 @@ def test_a_pixel_pin_action_holds_the_node_nearest_its_point():
     assert node.tolist() == [19, 19] and pin.tolist() == [10, -1]            # on the grasped node: no pin
     torch.testing.assert_close(drag, torch.tensor([[0.0, 0.1], [0.0, 0.1]]))
     core.step(a)
-    expect = core.sim.move(state.pos, node, drag, routing.simulator_pegs(state.pegs), pin)
+    expect = core.sim.move(state.pos, node, drag, state.pegs, pin)
     torch.testing.assert_close(core.get_state().pos, expect, rtol=0, atol=1e-6)
 
 
@@ -157,7 +157,42 @@ def test_a_start_across_the_board_lies_among_the_pegs_and_clear_of_them():
     centre = lambda s: (s.pos.mean(1) - s.target.mean(1)).norm(dim=-1)
     assert (centre(a) < 0.06).all() and (centre(b) > 0.15).all()
     for s in (a, b):                 # drawn clear of the pegs; the settle may bring it into light contact
-        depth = diffdlo.contact.depth(s.pos, routing.simulator_pegs(s.pegs), across.params.rope_radius)
+        depth = diffdlo.contact.depth(s.pos, s.pegs, across.params.rope_radius)
         assert (depth < across.params.contact_width).all()
     with pytest.raises(ValueError, match="route_start"):
         BatchedShapeControl(1, target="route", reward="route_gain", route_start="on_top")
+
+
+def test_an_episode_among_pegs_never_stops_on_a_rope_put_down_inside_a_peg(tmp_path, params):
+    """The env's side of issue 68: a board with a small peg on the grasped node's path (benchmarks.contact_checks's
+    path_scenes, a case whose settle alone leaves the rope inside the peg) and a rope started there. The step that
+    carries the lifted links over the peg and the steps after it run (before the fix, the next step raised "lies
+    ... deep in peg"), every state a valid start; then random steps on random boards with pins."""
+    import yaml
+
+    from benchmarks.contact_checks import path_scenes
+    pos, pegs, node, delta, pin = (x[41] for x in path_scenes(params, 512, 1))      # let go at half its drag
+    board = pegs[pegs[:, 2] > 0]
+    route = torch.stack([torch.linspace(-0.25, 0.25, params.n_nodes, dtype=torch.float64),
+                         torch.full((params.n_nodes,), 0.45, dtype=torch.float64)], -1)   # clear of the pegs
+    (tmp_path / "board.yaml").write_text(yaml.safe_dump({"pegs": board.tolist(), "route": route.tolist()}))
+    env = gym.make(ROUTING_ENV_ID, target=f"route:{tmp_path / 'board.yaml'}", start=pos.numpy(),
+                   action_type="node_pin", max_steps=5)
+    env.reset(seed=0)
+    core = env.unwrapped.core
+    state = core.get_state(generators=False)
+    sim = core.sim
+    settled, _ = sim._run_move(state.pos, torch.zeros_like(state.pos), node[None], delta[None].to(sim.dtype),
+                               sim._check_pegs(state.pos, state.pegs), pin[None], None, 0, False, False)
+    assert float(diffdlo.contact.depth(settled, state.pegs, params.rope_radius)) > params.rope_radius   # the case
+    action = torch.cat([task.encode_node_action(node, delta, params.n_nodes, params.action_scale),
+                        task.encode_pin(pin[None], params.n_nodes, torch.float64)]).numpy()
+    for step in range(3):
+        env.step(action if step == 0 else env.action_space.sample())
+        s = core.get_state(generators=False)
+        assert float(diffdlo.contact.depth(s.pos, s.pegs, params.rope_radius)) < params.rope_radius
+    venv = gym.make_vec(ROUTING_ENV_ID, num_envs=32, action_type="node_pin", route_start="across")
+    venv.reset(seed=0)
+    venv.action_space.seed(0)
+    for _ in range(40):
+        venv.step(venv.action_space.sample())

@@ -28,7 +28,7 @@ def test_the_objective_matches_the_env_on_a_route_with_pins():
     start, route, pegs = state.pos[0].clone(), state.target[0].clone(), state.pegs[0].clone()
     actions = torch.rand(3, 2, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     actions[1, :, 3] = 0.0                                           # rope 1: no pin
-    obj = SimObjective(env.sim, start, route, pegs=routing.simulator_pegs(pegs[None])[0])
+    obj = SimObjective(env.sim, start, route, pegs=pegs[None][0])
     node, delta = task.decode_node_action(actions[..., :3].float(), env.params)
     pin = task.decode_pin(actions[..., 3].float(), node, env.params.n_nodes)
     cost, states = obj.rollout_deltas(node, delta, return_states=True, pin=pin)
@@ -66,7 +66,7 @@ def test_every_planner_plans_routes_with_and_without_the_pin():
                     CEMPlanner(env.sim, horizon=1, candidates=20, elites=4, iterations=2, pin=pin),
                     GradientPlanner(env.sim, iters=2, restarts=1, halvings=1, pin=pin)]
         for planner in planners:
-            action = planner.plan(pos, route, routing.simulator_pegs(pegs[None])[0])
+            action = planner.plan(pos, route, pegs[None][0])
             assert action.shape == (4 if pin else 3,), (planner.name, action.shape)
             assert bool(((action >= 0) & (action <= 1)).all())
             if pin and planner.name == "greedy":

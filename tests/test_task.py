@@ -63,6 +63,32 @@ def test_step_outcome_scores_success_exit_and_time_limit():
     assert r[0] == 20.0 and r[1] == -7.0 and r[2] == pytest.approx(-0.5)   # no progress: the step penalty
 
 
+def test_a_rope_on_the_route_but_round_a_peg_on_the_wrong_side_neither_ends_the_episode_nor_succeeds():
+    """The route success rule, once: a rope of the route's shape (mean node error 2 mm, within the 1 cm) passing a
+    peg on the other side from the route is not terminated, gets no bonus and is not info["is_success"]; the same
+    rope with the peg on the route's side is all three. Both paths (step_outcome, task_metrics) read task_success."""
+    p = diffdlo.load_params("cable")
+    rules = EnvOptions(target="route", reward="route_gain", success_tol=0.01, success_bonus=20.0).resolve()
+    x = (torch.arange(p.n_nodes, dtype=torch.float64) - (p.n_nodes - 1) / 2) * p.rest_length
+    route = torch.stack([x, torch.zeros_like(x)], -1)                 # straight, along y = 0
+    radius = 0.005
+    below = torch.tensor([[0.0, -(radius + p.rope_radius + 0.001), radius]], dtype=torch.float64)
+    above = below * torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64)
+    over = route.clone()
+    over[[9, 10], 1] = 0.022                                          # nodes 9-10 lifted over a peg at y = +11 mm
+    assert float((over - route).norm(dim=-1).mean()) < 0.01
+    rope = over[None].repeat(2, 1, 1)
+    pegs = torch.stack([above, below])                                # rope 0: the peg between rope and route
+    prev = rope + 0.05
+    r, term, trunc, success = task.step_outcome(rules, prev, rope, route[None].expand(2, -1, -1),
+                                                torch.tensor([1, 1]), pegs)
+    metrics = task.task_metrics(rope, route[None].expand(2, -1, -1), 0.01, None, pegs)
+    assert metrics["sides_kept"].tolist() == [False, True]
+    assert success.tolist() == [False, True] and term.tolist() == [False, True]
+    assert float(r[0]) != rules.success_bonus and float(r[1]) == rules.success_bonus
+    assert metrics["is_success"].tolist() == [False, True]
+
+
 def test_draw_target_names_what_it_drew(small):
     named = {n: diffdlo.target_shape(n, small) for n in diffdlo.TARGET_NAMES}
     rng = np.random.default_rng(3)

@@ -53,8 +53,8 @@ def picture_sets(n: int, seed: int, p, sim, size: int, view_size: float) -> dict
         lay = routing.load_layout(name, p)
         route, pegs = lay.route[None].float(), routing.padded(lay.pegs, MAX_PEGS)[None].float()
         sets[f"{name}: route"] = dict(truth=route, pegs=pegs, rope=False)
-        sets[f"{name}: rope on it"] = dict(truth=sim.settle(route.to(sim.dtype), pegs=routing.simulator_pegs(
-            pegs).to(sim.dtype)).float(), pegs=pegs, rope=True)
+        sets[f"{name}: rope on it"] = dict(truth=sim.settle(route.to(sim.dtype), pegs=pegs.to(sim.dtype)).float(),
+                                                 pegs=pegs, rope=True)
     for s in sets.values():
         s["with_pegs"] = render_uint8(s["truth"], size, view_size, s["rope"], s["pegs"])
         s["no_pegs"] = render_uint8(s["truth"], size, view_size, s["rope"])

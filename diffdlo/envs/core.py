@@ -249,7 +249,7 @@ class BatchedShapeControl:
         pegs = None
         if self.route:
             s.pegs[ids] = torch.stack(boards)
-            pegs = routing.simulator_pegs(s.pegs[ids])
+            pegs = s.pegs[ids]
         if self.start is None:
             start, settle_info = self.sim.settle(torch.cat(shapes), return_info=True, pegs=pegs)
             substeps = settle_info.substeps
@@ -313,7 +313,7 @@ class BatchedShapeControl:
             prev, target = s.pos[ids], s.target[ids]
             pegs = None if s.pegs is None else s.pegs[ids]
             new, move_info = self.sim.move(prev, node[ids], delta[ids], None if pegs is None else
-                                           routing.simulator_pegs(pegs), pin, return_info=True)
+                                           pegs, pin, return_info=True)
             s.pos[ids] = new
             s.steps[ids] += 1
             self._update_info(ids, new, target, node[ids], move_info.substeps)

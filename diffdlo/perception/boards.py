@@ -39,7 +39,7 @@ def board_shapes(n: int, p: CableParams, generator: torch.Generator, sim, kind: 
     else:
         start = routing.start_beside if kind == "beside" else routing.start_across
         ropes = torch.stack([start(lay, p, generator) for lay in layouts])
-    sim_pegs = routing.simulator_pegs(pegs).to(sim.dtype)
+    sim_pegs = pegs.to(sim.dtype)
     ropes = sim.settle(ropes.to(sim.dtype), pegs=sim_pegs).double()
     if kind in ("moved", "on_route"):
         most, scale = (max_moves, p.action_scale) if kind == "moved" else (3, NEAR_DRAG)
