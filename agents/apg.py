@@ -5,9 +5,9 @@ file: config -> networks -> loop.
     python -m agents.apg --target random --total-steps 5000 --out runs/apg
 
 Each update rolls the training env's ropes H moves on with the current policy, keeping the autograd graph:
-observation (built from the rope's positions, differentiable, as ``diffdlo.task.observe`` builds it) -> policy ->
+observation (built from the rope's positions, differentiable, as ``diffdlo.tasks.task.observe`` builds it) -> policy ->
 drag -> ``Simulator.move`` (float32, the env's dtype: the env replays the same move without a graph for its
-bookkeeping and gives the identical rope) -> the env's reward (``diffdlo.rewards.reward``, e.g. shape_gain: the cm
+bookkeeping and gives the identical rope) -> the env's reward (``diffdlo.tasks.rewards.reward``, e.g. shape_gain: the cm
 of shape error removed). The pathwise objective J = sum_t gamma^t r_t (restarted at each episode end; a reset rope
 carries no gradient back) is maximized by Adam on the actor. With ``critic: true`` a learned V(s) adds gamma^H V(s_H)
 (and V at a truncation) differentiably: the value beyond the horizon, trained on TD(lambda) targets of the rollouts.
@@ -19,7 +19,7 @@ simulator. ``node`` says how it is chosen and learned:
   -log pi(k_t | s_t) A_t (REINFORCE; A_t: GAE(lambda) on the env's rewards with the critic as baseline, or, without
   a critic, the discounted return within the window minus its batch mean), normalized, plus an entropy bonus. The
   drag of the chosen node gets the pathwise gradient. Evaluation: the argmax node.
-- ``greedy``: the node farthest from its place in the centroid-aligned target (``diffdlo.task.greedy_drags``, the
+- ``greedy``: the node farthest from its place in the centroid-aligned target (``diffdlo.tasks.task.greedy_drags``, the
   greedy planner's choice); only the drag is learned, pathwise. A relaxation by a fixed rule: nothing is learned
   about the node.
 - ``gain``: a head G(s, k) predicts the reward of moving node k with the policy's drag; it regresses the reward of
@@ -55,9 +55,9 @@ from agents.models.networks import Features, mlp
 from agents.common.run import Run, learner
 from agents.sac import HybridActor
 from diffdlo.utils.checks import check_fields, option
-from diffdlo.rewards import reward as move_reward, shape_error
-from diffdlo.routing import route_errors
-from diffdlo.task import decode_node_action, greedy_drags
+from diffdlo.tasks.rewards import reward as move_reward, shape_error
+from diffdlo.tasks.routing import route_errors
+from diffdlo.tasks.task import decode_node_action, greedy_drags
 
 NODE_RULES = ("score", "greedy", "gain")
 OBJECTIVES = ("reward", "log_error")
@@ -114,7 +114,7 @@ class APGConfig:
 
 # ====================================================================== networks
 def graph_obs(obs_type: str, pos: torch.Tensor, target: torch.Tensor, pegs: torch.Tensor | None = None) -> Any:
-    """The observation of ropes ``pos`` (B, N, 2) as ``diffdlo.task.observe`` gives it, but keeping pos's graph
+    """The observation of ropes ``pos`` (B, N, 2) as ``diffdlo.tasks.task.observe`` gives it, but keeping pos's graph
     (with ``pegs`` (B, K, 3), a route: the pegs too)."""
     if obs_type == "points":
         obs = {"node_poses": pos.float(), "target_poses": target.detach().float()}
@@ -124,7 +124,7 @@ def graph_obs(obs_type: str, pos: torch.Tensor, target: torch.Tensor, pegs: torc
 
 def greedy_node(obs: Any) -> torch.Tensor:
     """(B,) the node farthest from its place in the centroid-aligned target (on a route, its place on the board:
-    ``diffdlo.task.greedy_drags``)."""
+    ``diffdlo.tasks.task.greedy_drags``)."""
     pos, target = (obs["node_poses"], obs["target_poses"]) if isinstance(obs, dict) else (obs, torch.zeros_like(obs))
     align = not (isinstance(obs, dict) and "pegs" in obs)
     return greedy_drags(pos.detach(), target.detach(), 1.0, align=align)[1].argmax(-1)

@@ -46,8 +46,8 @@ from agents.models.openloop import open_loop_eval, openloop_row, plot_open_loop
 from agents.models.latent import LatentWorldModel, check_latent_settings
 from agents.models.rssm import RSSM, LatentPlanner
 from diffdlo.utils.checks import check_fields, option
-from diffdlo.params import CableParams
-from diffdlo.task import COORDINATE_OBS, POINT_OBS
+from diffdlo.planar.params import CableParams
+from diffdlo.tasks.task import COORDINATE_OBS, POINT_OBS
 
 
 MODELS = ("ensemble", "latent", "rssm")

@@ -26,10 +26,11 @@ from pathlib import Path
 
 import torch
 
-from diffdlo import contact, routing
-from diffdlo.params import CableParams, load_params
-from diffdlo.shapes import target_shape
-from diffdlo.simulator import Simulator
+from diffdlo.planar import contact
+from diffdlo.tasks import routing
+from diffdlo.planar.params import CableParams, load_params
+from diffdlo.planar.shapes import target_shape
+from diffdlo.planar.simulator import Simulator
 from diffdlo.utils.files import check_fresh_file
 
 F64 = torch.float64
@@ -350,7 +351,7 @@ def gradient_quality(p: CableParams, widths=(0.0005, 0.0025, 0.005), **kw) -> li
 def wrap_figure(path: Path, p: CableParams | None = None) -> Path:
     """The wrap, drawn: the rope (its capsules to scale) after selected moves of WRAP_MOVES, pinned and pulled, and
     2 s after its release; the peg grey, node 0 a red square, the grasped node an orange star."""
-    from diffdlo.render import _pyplot
+    from diffdlo.utils.render import _pyplot
     plt = _pyplot()
     p = p or load_params("cable")
     sim = Simulator(p, dtype=F64)

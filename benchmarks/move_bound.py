@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 from diffdlo.utils.files import OutBusyError, out_lock, write_json_atomic
-from diffdlo.params import load_params
+from diffdlo.planar.params import load_params
 from diffdlo.utils.signals import exit_code, stop_on_signals
 from planners.cem import CEMPlanner
 from planners.common import build_run, run_episode

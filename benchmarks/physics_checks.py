@@ -33,11 +33,11 @@ import torch
 
 from benchmarks import contact_checks
 from diffdlo.utils.files import check_fresh_out
-from diffdlo.forces import energy, turning_angles
-from diffdlo.params import CableParams, load_params
-from diffdlo.rewards import shape_error
-from diffdlo.rod import params_for_rod, rod_properties
-from diffdlo.simulator import Simulator
+from diffdlo.planar.forces import energy, turning_angles
+from diffdlo.planar.params import CableParams, load_params
+from diffdlo.tasks.rewards import shape_error
+from diffdlo.planar.rod import params_for_rod, rod_properties
+from diffdlo.planar.simulator import Simulator
 
 F64 = torch.float64
 # Bisshopp & Drucker (1945), cantilever under a dead tip load perpendicular to the undeformed rod:
@@ -518,7 +518,7 @@ def table(res: dict) -> str:
                 f"left, end-to-end {sc['chord_before']:.3f} L -> {sc['chord_after']:.3f} L | {cmd} |")
     rows.append(f"| Table 2.1 as a rod | EI = k_b l0, EA = k_s l0 | EI {rod['EI']:.3e} N m^2, EA {rod['EA']:.3g} N, "
                 f"mu {rod['mass_per_length']:.3g} kg/m, drag {rod['drag_per_length']:.3g} N s/m^2; the same k_b at "
-                f"N=40: EI {rod['n40_same_k_b_EI']:.3e} | `diffdlo.rod.rod_properties(load_params('cable'))` |")
+                f"N=40: EI {rod['n40_same_k_b_EI']:.3e} | `diffdlo.planar.rod.rod_properties(load_params('cable'))` |")
     rows += ["", "| moves H | loss [m] | gradient norm (first / last drag) | rel. error vs central FD (median / max, "
              "clean directions) | directions crossing a discrete decision | gradient s |", "|---|---|---|---|---|---|"]
     for gr in res["gradients"]:

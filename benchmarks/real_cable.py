@@ -3,9 +3,9 @@
     python -m benchmarks.real_cable --data /path/to/DEFORM/data_set --out runs/real_cable [--cables 1 2 3 4 5]
                                     [--quick] [--jobs 2] [--threads 2] [--overwrite]
 
-For each cable: fit the chain's physical parameters (diffdlo.real.fit.fit_cable) on its train split (the fits run
+For each cable: fit the chain's physical parameters (diffdlo.chain3d.fit.fit_cable) on its train split (the fits run
 in ``--jobs`` processes of one torch thread each), then score the open-loop prediction of every eval recording by
-DEFORM's protocol (diffdlo.real.fit.evaluate, with ``--threads`` torch threads, timed per trajectory-frame), beside
+DEFORM's protocol (diffdlo.chain3d.fit.evaluate, with ``--threads`` torch threads, timed per trajectory-frame), beside
 the "markers frozen at frame 1, held ones driven" baseline and the numbers DEFORM's paper reports.
 
 Writes OUT/results.json (per cable: the errors, the fitted parameters with their uncertainty, the time per frame,
@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from diffdlo.real import deform, fit
+from diffdlo.chain3d import deform, fit
 from diffdlo.utils.files import check_fresh_out, out_lock, replacing, write_json_atomic
 
 # DEFORM's paper (Chen et al., CoRL 2024), average L1 error over 5 s [cm] per cable 1..5; "frozen" was measured by

@@ -6,12 +6,12 @@ physics-only fit it starts from.
 
 For each cable: the physical parameters are the physics-only fit's (``--physics``: a ``python -m
 benchmarks.real_cable`` output folder; its results.json), held fixed; the residual network
-(diffdlo.real.residual.fit_residual) is trained through the chain's rollout over ``--window``-frame windows of the
+(diffdlo.chain3d.residual.fit_residual) is trained through the chain's rollout over ``--window``-frame windows of the
 train split, ``--validation`` of the train recordings held out (seeded) to keep its best state; then every eval
 recording is predicted by DEFORM's protocol, physics only and with the correction, and scored.
 
 Writes OUT/results.json (per cable: both errors, the paper's numbers, the training's record, the time per frame),
-OUT/DLO<k>_residual.pt (the network: data only, ``diffdlo.real.residual.load``), OUT/predictions/DLO<k>/<id>.npz
+OUT/DLO<k>_residual.pt (the network: data only, ``diffdlo.chain3d.residual.load``), OUT/predictions/DLO<k>/<id>.npz
 (``positions`` (T-2, n, 3) float32 [m] with the correction, frames 2..T-1) and OUT/figures/error_over_time.png.
 The recordings are read from --data, never copied.
 """
@@ -29,7 +29,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.real_cable import PAPER_CM, plot_errors, write_predictions
-from diffdlo.real import deform, fit, residual
+from diffdlo.chain3d import deform, fit, residual
 from diffdlo.utils.files import check_fresh_out, out_lock, write_json_atomic
 
 # the helper study's settings (docs/REAL_CABLE.md: window 40 beat 20 on DLO3's validation and eval error)

@@ -14,8 +14,8 @@ import warnings
 import torch
 
 import diffdlo
-from diffdlo.backends import kernel
-from diffdlo.params import PARAMS_DIR
+from diffdlo.planar.backends import kernel
+from diffdlo.planar.params import PARAMS_DIR
 
 
 def backend_line() -> str:
@@ -33,7 +33,7 @@ def backend_line() -> str:
 def gpu_backend_line() -> str:
     """What ``backend="auto"`` runs on CUDA tensors: the Triton kernels (forward and adjoint) where triton imports,
     else the eager torch path and why."""
-    from diffdlo.backends import triton_kernel
+    from diffdlo.planar.backends import triton_kernel
     reason = triton_kernel.unavailable_reason()
     if reason is not None:
         return f"eager torch path: {reason}"

@@ -7,7 +7,7 @@ its first action in ``BatchedShapeControl`` and replans until success (shape_err
 ``--success-worst-tol``, worst_node_error < it: the env's test) or max_steps. The episode's record keeps the mean
 error ("errors") and the worst node's error ("worst_errors") after the reset and after every move.
 Episode i starts from ``env.reset(seed=seed + i)``; with ``--target random`` or ``random_curve`` (a family in
-diffdlo.shapes.TARGET_FAMILIES) that reset also draws episode i's target, recorded under the episode in results.json.
+diffdlo.planar.shapes.TARGET_FAMILIES) that reset also draws episode i's target, recorded under the episode in results.json.
 That is the learners' evaluation rule too (agents/common/evaluation.py: episode i of a one-rope or batched evaluation env
 reset with seed s is ``reset(seed=s + i)`` of one rope), so a planner and a learner evaluated with the same seed see
 the same start shapes and targets, episode by episode (tests/test_paired_episodes.py).
@@ -29,15 +29,15 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from diffdlo import routing, task
+from diffdlo.tasks import routing, task
 from diffdlo.utils.checks import check_interval
 from diffdlo.envs import BatchedShapeControl, EnvOptions
 from diffdlo.utils.signals import exit_code, stop_on_signals
 from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, shapes_record, write_json_atomic
-from diffdlo.params import CableParams, ParamsError, load_params
-from diffdlo.physics import PHYSICAL, physical_values, scaled_params   # what a scale may change
-from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
-from diffdlo.simulator import Simulator
+from diffdlo.planar.params import CableParams, ParamsError, load_params
+from diffdlo.planar.physics import PHYSICAL, physical_values, scaled_params   # what a scale may change
+from diffdlo.planar.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
+from diffdlo.planar.simulator import Simulator
 
 DEFAULT_MAX_STEPS = 15
 SAME_MOVES = ("n_nodes", "length", "action_scale", "max_disp")   # model and real rope must agree on these
@@ -330,7 +330,7 @@ def write_outputs(out: Path, name: str, args, label: str, target: torch.Tensor |
     """results.json (with ``extra``'s fields), shapes.png and the GIFs. ``target`` None: the target was drawn per
     episode (a family), so each episode's own target (its "target_points") is drawn and recorded under the episode as
     "target" ([[x, y], ...])."""
-    from diffdlo import render
+    from diffdlo.utils import render
 
     n = len(episodes)
     steps = sum(e["steps"] for e in episodes)

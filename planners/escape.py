@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from diffdlo.task import greedy_drags
+from diffdlo.tasks.task import greedy_drags
 
 from .greedy import GreedyPlanner
 

@@ -24,7 +24,7 @@ import math
 
 import torch
 
-from diffdlo.task import encode_node_action, encode_pin, greedy_drags
+from diffdlo.tasks.task import encode_node_action, encode_pin, greedy_drags
 
 from .objective import SimObjective
 

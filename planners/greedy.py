@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from diffdlo.task import encode_node_action, encode_pin, greedy_drags
+from diffdlo.tasks.task import encode_node_action, encode_pin, greedy_drags
 
 
 class GreedyPlanner:

@@ -3,7 +3,7 @@
 ``SimObjective(sim, start, target)(actions (B, H, 3)) -> (B,)`` rolls the B sequences out with ONE batched
 ``Simulator.move`` per horizon step and returns the ``shape_error`` [m] (centroid-aligned mean node distance, the
 metric that defines success in the env) after the last move. Actions are the env's node actions in [0, 1]^3, clipped
-to [0, 1] and decoded by the env's own rule (``diffdlo.task.decode_node_action``, eq 2.6), so a plan can be executed
+to [0, 1] and decoded by the env's own rule (``diffdlo.tasks.task.decode_node_action``, eq 2.6), so a plan can be executed
 in the env as is. Planners only need ``objective(actions) -> costs``: the CEM optimizer is generic
 and can later be given a learned latent model's objective instead (PlaNet).
 
@@ -13,10 +13,10 @@ gradient planner backpropagates; every planner here (CEM, gradient, greedy) opti
 quantity. ``running_weight`` > 0 adds that weight times the mean error of the intermediate states (H > 1 only),
 which prefers plans that improve early (useful in receding-horizon control, where only the first move is kept).
 
-A route among pegs (``pegs`` given, diffdlo/routing.py): the moves run with the pegs, the error is measured on the
+A route among pegs (``pegs`` given, diffdlo/tasks/routing.py): the moves run with the pegs, the error is measured on the
 board (no centroid alignment: the success test's), and every peg passed on the wrong side costs ``SIDE_COST`` [m]
 more (the side test is discrete: it steers CEM and greedy, and gives a gradient nothing). Actions of 4 entries are
-the env's "node_pin" actions: the last one a second gripper's node (diffdlo.task.decode_pin).
+the env's "node_pin" actions: the last one a second gripper's node (diffdlo.tasks.task.decode_pin).
 """
 from __future__ import annotations
 
@@ -24,13 +24,13 @@ from typing import Callable
 
 import torch
 
-from diffdlo import routing
-from diffdlo.rewards import shape_error
-from diffdlo.task import decode_node_action, decode_pin
-from diffdlo.simulator import Simulator
+from diffdlo.tasks import routing
+from diffdlo.tasks.rewards import shape_error
+from diffdlo.tasks.task import decode_node_action, decode_pin
+from diffdlo.planar.simulator import Simulator
 
 # A route's cost (the error on the board plus SIDE_COST per peg on the wrong side) is the routing task's own rule:
-# diffdlo.routing holds it, so the env's reward "route_side_gain" and the planners score the same thing.
+# diffdlo.tasks.routing holds it, so the env's reward "route_side_gain" and the planners score the same thing.
 SIDE_COST = routing.SIDE_COST
 route_cost = routing.route_cost
 

@@ -12,7 +12,7 @@ from benchmarks.compare.figures import _gallery, _gallery_panels, final_errors
 from benchmarks.compare.grid import env_target, learner_source, load_grid, route_targets, variant_targets
 from benchmarks.compare.summary import task_source
 from benchmarks.compare.routing import partner, routing_data, routing_rows, routing_section
-from diffdlo import routing
+from diffdlo.tasks import routing
 
 ROUTE_ROWS = ([("greedy", v) for v in ("route", "route_pin")]
               + [(m, v) for m in ("cem", "gradient")

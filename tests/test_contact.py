@@ -1,4 +1,4 @@
-"""Pegs and the second gripper (diffdlo/contact.py, Simulator.move(..., pegs, pin)): the contact forces are -grad of
+"""Pegs and the second gripper (diffdlo/planar/contact.py, Simulator.move(..., pegs, pin)): the contact forces are -grad of
 the contact energy, a move in contact is gradcheck-exact, no rope ends inside a peg, a rope dragged around a peg
 wraps and stays wrapped, a node released above a peg is pushed out along the peg's radius, momentum holds with
 contact off and energy is only lost to damping, and every bad input is refused naming the value."""
@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 
 import diffdlo
 from benchmarks.contact_checks import line, path_scenes, winding, wrapped
-from diffdlo import contact, simulator
-from diffdlo.contact import PegError
-from diffdlo.params import ParamsError
+from diffdlo.planar import contact, simulator
+from diffdlo.planar.contact import PegError
+from diffdlo.planar.params import ParamsError
 
 F64 = torch.float64
 
@@ -462,7 +462,7 @@ def test_the_checks_command_refuses_bad_flags_and_an_existing_file(tmp_path, cap
 
 
 def test_the_kernels_start_check_equals_the_torch_overlap(params):
-    from diffdlo.backends import kernel
+    from diffdlo.planar.backends import kernel
     if not kernel.available():
         pytest.skip(f"no C++ kernel: {kernel.unavailable_reason()}")
     pos, pegs = contact_states(params)

@@ -12,8 +12,8 @@ from agents.common.envs import TrainEnv
 from agents.common.logs import read_csv
 from agents.tools.policy import load_policy
 from diffdlo.envs import BatchedShapeControl
-from diffdlo.params import load_params
-from diffdlo.task import encode_node_action, greedy_drags
+from diffdlo.planar.params import load_params
+from diffdlo.tasks.task import encode_node_action, greedy_drags
 
 from test_agents import TINY, argv as ppo_argv
 

@@ -11,10 +11,10 @@ from agents.common.checkpoints import CHECKPOINT
 from agents.common.config import load_config
 from agents.common.logs import read_csv
 from agents.models.ensemble import EnsembleDynamics, ModelObjective, k_step_errors
-from diffdlo.params import load_params
-from diffdlo.rewards import shape_error
-from diffdlo.simulator import Simulator
-from diffdlo.task import decode_node_action, encode_node_action
+from diffdlo.planar.params import load_params
+from diffdlo.tasks.rewards import shape_error
+from diffdlo.planar.simulator import Simulator
+from diffdlo.tasks.task import decode_node_action, encode_node_action
 
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"

@@ -11,7 +11,7 @@ from gymnasium.vector import AutoresetMode
 
 import diffdlo
 from diffdlo.envs import ACTION_TYPES, ENV_ID, OBS_TYPES, BatchedShapeControl, ShapeControlVectorEnv
-from diffdlo.rewards import PEG_REWARDS
+from diffdlo.tasks.rewards import PEG_REWARDS
 
 ZERO_DRAG = [0.0, 0.5, 0.5]          # node 0, dx = dy = 0
 
@@ -25,7 +25,7 @@ FREE_ROPE_REWARDS = [r for r in diffdlo.REWARDS if r not in PEG_REWARDS]
 
 
 def straight(p, angle_deg=0.0, shift=(0.0, 0.0)):
-    from diffdlo.shapes import straight_shape
+    from diffdlo.planar.shapes import straight_shape
     return (straight_shape(angle_deg, p) + torch.tensor(shift, dtype=torch.float64)).to(torch.float32)
 
 

@@ -201,7 +201,7 @@ def test_tolerance_ladder_is_exact_at_every_rung_and_agrees_with_the_runs_own_su
 @pytest.mark.parametrize("name", ["planet", "planet-latent"])
 def test_model_error_study_records_every_move_and_a_perfect_predictor_misses_nothing(name, runs):
     from benchmarks.studies import model_error
-    from diffdlo.simulator import Simulator
+    from diffdlo.planar.simulator import Simulator
     res = model_error.closed_loop_moves(runs[name], episodes=3, seed=5)
     task = agents.load_policy(runs[name]).config.task
     tol = res["success_tol"]

@@ -12,7 +12,7 @@ from gymnasium.vector import AutoresetMode
 import diffdlo
 from diffdlo import TargetError
 from diffdlo.envs import ENV_ID, BatchedShapeControl, ShapeControlVectorEnv
-from diffdlo.shapes import straight_shape
+from diffdlo.planar.shapes import straight_shape
 
 ZERO_DRAG = [0.0, 0.5, 0.5]          # node 0, dx = dy = 0
 

@@ -1,7 +1,7 @@
 import torch
 
 import diffdlo
-from diffdlo import image
+from diffdlo.tasks import image
 
 
 def test_pixel_grid_and_world_to_pixel_agree():

@@ -9,7 +9,7 @@ from agents import ppo, sac
 from agents.common.checkpoints import CHECKPOINT
 from agents.common.config import load_config
 from agents.models.networks import KeypointCNN, random_shift, shift_images
-from diffdlo import image as rimage
+from diffdlo.tasks import image as rimage
 from diffdlo.envs import BatchedShapeControl
 
 from tests.test_agents import argv

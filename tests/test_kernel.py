@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo.backends import kernel
+from diffdlo.planar.backends import kernel
 from conftest import crumpled
 
 pytestmark = pytest.mark.skipif(not kernel.available(), reason=f"kernel unavailable: {kernel.unavailable_reason()}")

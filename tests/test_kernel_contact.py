@@ -1,4 +1,4 @@
-"""The fused C++ kernel with pegs (diffdlo/contact.py) and the pin, against the eager torch path (the oracle): the
+"""The fused C++ kernel with pegs (diffdlo/planar/contact.py) and the pin, against the eager torch path (the oracle): the
 Hessian-vector product of the contact energy, positions, run statistics, frames and the gradients w.r.t. pos, vel,
 delta and the per-rope physics, on the vectorized lane groups and the per-rope path alike; gradcheck; float32; and
 without pegs and pin the very code it ran before."""
@@ -8,9 +8,9 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo import contact
-from diffdlo.backends import kernel
-from diffdlo.physics import PHYSICAL, Physics
+from diffdlo.planar import contact
+from diffdlo.planar.backends import kernel
+from diffdlo.planar.physics import PHYSICAL, Physics
 from tests.conftest import crumpled
 
 pytestmark = pytest.mark.skipif(not kernel.available(), reason=f"kernel unavailable: {kernel.unavailable_reason()}")
@@ -78,7 +78,7 @@ def scene(p, batch=BATCH, seed=0, k_max=4, drag=0.06, special=True):
     for b in range(batch):
         want, slot = 1 + b % k_max, 0
         if b % 2 == 0 and float(delta[b].norm()) > 0:                     # on the drag path
-            clipped = diffdlo.control.clip_drag(delta[b:b + 1], p.max_disp)[0]
+            clipped = diffdlo.planar.control.clip_drag(delta[b:b + 1], p.max_disp)[0]
             slot += place(pos, p, b, pegs, slot, pos[b, node[b]] + (0.3 + 0.4 * unit()) * clipped, 0.004)
         for _ in range(200):
             if slot == want:
@@ -230,9 +230,9 @@ def test_lane_groups_equal_the_per_rope_path_over_full_moves(params):
     pairs by their clearance) give the per-rope path's result, which evaluates every candidate each substep."""
     p = params
     pos, node, delta, pin, pegs = scene(p, batch=2 * LANES, seed=4, drag=0.1)
-    clipped = diffdlo.control.clip_drag(delta, p.max_disp)
+    clipped = diffdlo.planar.control.clip_drag(delta, p.max_disp)
     dist = clipped.norm(dim=-1)
-    speed, steps = diffdlo.control.drag_speed(dist, p), diffdlo.control.path_substeps(dist, p)
+    speed, steps = diffdlo.planar.control.drag_speed(dist, p), diffdlo.planar.control.path_substeps(dist, p)
     out = [kernel.forward(kernel.Setup(p, 2 * LANES, lane_groups=groups, record_every=40), pos, None, node, clipped,
                           speed, steps, None, pegs, pin) for groups in (True, False)]
     for x, y in zip(out[0][:5], out[1][:5]):
@@ -316,9 +316,9 @@ def test_no_pegs_and_no_pin_run_the_plain_kernel(params):
     assert torch.equal(sim.move(pos, node, delta, empty), plain)
     assert torch.equal(sim.move(pos, node, delta, None, torch.full_like(pin, -1)), plain)
     assert torch.equal(sim.integrate(pos, None, 50, pegs=empty)[0], sim.integrate(pos, None, 50)[0])
-    clipped = diffdlo.control.clip_drag(delta, p.max_disp)
+    clipped = diffdlo.planar.control.clip_drag(delta, p.max_disp)
     dist = clipped.norm(dim=-1)
-    args = (pos, None, node, clipped, diffdlo.control.drag_speed(dist, p), diffdlo.control.path_substeps(dist, p))
+    args = (pos, None, node, clipped, diffdlo.planar.control.drag_speed(dist, p), diffdlo.planar.control.path_substeps(dist, p))
     setup = kernel.Setup(p, BATCH)
     base = kernel.forward(setup, *args)
     for pegs, pins in ((torch.zeros(BATCH, 0, 3, dtype=torch.float64), None), (None, torch.full_like(pin, -1))):

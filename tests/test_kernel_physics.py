@@ -1,4 +1,4 @@
-"""The fused kernel with per-rope physics (diffdlo.physics) and frame recording, against the eager torch path:
+"""The fused kernel with per-rope physics (diffdlo.planar.physics) and frame recording, against the eager torch path:
 positions, every recorded frame, run statistics, and the gradients w.r.t. pos, delta and k_s, k_b, k_d, mass
 (also with a loss over the frames); gradcheck of the kernel's adjoint; physics=None stays the plain fast path."""
 import dataclasses
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo.backends import kernel
-from diffdlo.physics import PHYSICAL, Physics
+from diffdlo.planar.backends import kernel
+from diffdlo.planar.physics import PHYSICAL, Physics
 from tests.conftest import crumpled
 
 pytestmark = pytest.mark.skipif(not kernel.available(), reason=f"kernel unavailable: {kernel.unavailable_reason()}")
@@ -208,13 +208,13 @@ def test_gradient_through_the_returned_state_equals_eager(mixed, max_settle):
     p = dataclasses.replace(mixed, settle_max_substeps=max_settle)
     pos, node, delta, _ = batch(p)
     sim = diffdlo.Simulator(p, dtype=torch.float64, backend="kernel")
-    clipped = diffdlo.control.clip_drag(delta, p.max_disp)
-    steps = diffdlo.control.path_substeps(clipped.norm(dim=-1), p)
+    clipped = diffdlo.planar.control.clip_drag(delta, p.max_disp)
+    steps = diffdlo.planar.control.path_substeps(clipped.norm(dim=-1), p)
     weights = torch.randn(2, *pos.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
     grads, capped = [], None
     for engine in ("torch", "kernel"):
         x, v, d = (t.clone().requires_grad_(True) for t in (pos, 0.01 * weights[1], clipped))
-        speed = diffdlo.control.drag_speed(d.norm(dim=-1), p)
+        speed = diffdlo.planar.control.drag_speed(d.norm(dim=-1), p)
         if engine == "torch":
             out_x, out_v, _, _, settled, _ = sim._move_eager(x, v, node, d, speed, steps)
             capped = ~settled

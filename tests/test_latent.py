@@ -14,8 +14,8 @@ from agents.common.config import load_config
 from agents.common.logs import read_csv
 from agents.models.ensemble import symmetry_transform
 from agents.models.latent import Frame, LatentWorldModel
-from diffdlo.simulator import Simulator
-from diffdlo.task import decode_node_action, encode_node_action
+from diffdlo.planar.simulator import Simulator
+from diffdlo.tasks.task import decode_node_action, encode_node_action
 from test_dynamics import PO, TINY, random_ropes, tiny_params
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -16,11 +16,11 @@ from agents.models.networks import Features
 from agents.common.config import InputOptions
 from benchmarks import compare
 from tests.conftest import cli_error
-from diffdlo import contact
+from diffdlo.planar import contact
 from diffdlo.envs import BatchedShapeControl
-from diffdlo.params import load_params
-from diffdlo.simulator import Simulator
-from diffdlo.task import decode_pin, encode_node_action, encode_pin
+from diffdlo.planar.params import load_params
+from diffdlo.planar.simulator import Simulator
+from diffdlo.tasks.task import decode_pin, encode_node_action, encode_pin
 
 PO = dict(n_nodes=6, length=0.15, max_speed=1.0, settle_max_substeps=30, settle_check_every=10)
 TINY = "param_overrides={n_nodes: 6, length: 0.15, max_speed: 1.0, settle_max_substeps: 30, settle_check_every: 10}"

@@ -11,7 +11,7 @@ from planners import SimObjective
 from planners import cem as cem_mod
 from planners.cem import CEMPlanner
 from planners.common import PHYSICAL, build_run, physical_values, scaled_params
-from diffdlo.task import decode_node_action
+from diffdlo.tasks.task import decode_node_action
 
 TINY_CEM = ["--horizon", "1", "--candidates", "8", "--elites", "2", "--iterations", "1"]
 
@@ -76,7 +76,7 @@ def test_bad_real_scale_is_refused_and_named(items, tmp_path, capsys):
 
 @pytest.mark.parametrize("field,value", [("n_nodes", 10), ("length", 0.6), ("action_scale", 0.05)])
 def test_real_params_that_would_change_the_moves_are_refused(field, value, tmp_path, capsys):
-    text = (diffdlo.params.PARAMS_DIR / "cable.yaml").read_text()
+    text = (diffdlo.planar.params.PARAMS_DIR / "cable.yaml").read_text()
     key = {"n_nodes": "n_nodes: 20", "length": "length: 0.5", "action_scale": "action_scale: 0.1"}[field]
     assert key in text
     path = tmp_path / "other.yaml"

@@ -13,9 +13,9 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo.backends import kernel
+from diffdlo.planar.backends import kernel
 from diffdlo.__main__ import main as diffdlo_main
-from diffdlo.params import PARAMS_DIR
+from diffdlo.planar.params import PARAMS_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED_PACKAGES = ("diffdlo", "agents", "planners")     # what a wheel must hold, every module of them
@@ -27,7 +27,7 @@ WHEEL_SMOKE = """
 import gymnasium as gym, diffdlo
 from agents import sac
 from agents.common.config import PARAMS_DIR, load_config, preset_path
-from diffdlo.params import PARAMS_DIR as CABLE_PARAMS_DIR
+from diffdlo.planar.params import PARAMS_DIR as CABLE_PARAMS_DIR
 env = gym.make("DiffDLO/ShapeControl-v0")
 env.reset(seed=0)
 env.step(env.action_space.sample())
@@ -76,10 +76,11 @@ def test_wheel_holds_every_module_the_params_and_the_kernel_source(installed_whe
     params = {f"diffdlo/_params/{p.name}" for p in (ROOT / "params").glob("*.yaml")}
     assert "diffdlo/_params/cable.yaml" in params and "diffdlo/_params/sac.yaml" in params
     assert params <= names, sorted(params - names)
-    kernels = {f"diffdlo/backends/csrc/{p.name}" for p in (ROOT / "diffdlo" / "backends" / "csrc").glob("*.cpp")}
-    assert "diffdlo/backends/csrc/cable.cpp" in kernels and kernels <= names, sorted(kernels - names)
-    layouts = {f"diffdlo/layouts/{p.name}" for p in (ROOT / "diffdlo" / "layouts").glob("*.yaml")}
-    assert "diffdlo/layouts/u_two_pegs.yaml" in layouts and layouts <= names, sorted(layouts - names)
+    csrc = ROOT / "diffdlo" / "planar" / "backends" / "csrc"
+    kernels = {f"diffdlo/planar/backends/csrc/{p.name}" for p in csrc.glob("*.cpp")}
+    assert "diffdlo/planar/backends/csrc/cable.cpp" in kernels and kernels <= names, sorted(kernels - names)
+    layouts = {f"diffdlo/tasks/layouts/{p.name}" for p in (ROOT / "diffdlo" / "tasks" / "layouts").glob("*.yaml")}
+    assert "diffdlo/tasks/layouts/u_two_pegs.yaml" in layouts and layouts <= names, sorted(layouts - names)
 
 
 def test_installed_wheel_runs_the_env_and_loads_presets_outside_the_repository(installed_wheel, tmp_path):
@@ -128,7 +129,7 @@ def test_info_reports_version_backend_torch_devices_threads_and_params(capsys):
     assert diffdlo.__version__ in out and "torch:" in out and torch.__version__ in out
     backend = "fused C++ kernel" if kernel.available() else "eager torch path"
     assert f"simulator backend: {backend}" in out
-    from diffdlo.backends import triton_kernel
+    from diffdlo.planar.backends import triton_kernel
     gpu = "fused Triton kernels, forward and adjoint" if triton_kernel.available() else "eager torch path: triton"
     assert re.search(rf"on CUDA devices: +{gpu}", out), out
     assert "devices:" in out and "cpu" in out

@@ -9,7 +9,7 @@ import torch
 
 from agents.common.evaluation import evaluate
 from diffdlo.envs import BatchedShapeControl
-from diffdlo.params import load_params
+from diffdlo.planar.params import load_params
 from planners.common import build_run, run_episode
 from planners.greedy import GreedyPlanner
 

@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 import diffdlo
-from diffdlo.params import _RANGES, PARAMS_DIR, CableParams, ParamsError
+from diffdlo.planar.params import _RANGES, PARAMS_DIR, CableParams, ParamsError
 
 
 def test_defaults_match_table_2_1(params):

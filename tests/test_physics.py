@@ -1,4 +1,4 @@
-"""Moves differentiable with respect to the physical parameters (diffdlo.physics): per-rope k_s, k_b, k_d and mass,
+"""Moves differentiable with respect to the physical parameters (diffdlo.planar.physics): per-rope k_s, k_b, k_d and mass,
 checked with gradcheck in float64 against finite differences, and equal to the params' path when they agree."""
 import dataclasses
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo.physics import PHYSICAL, Physics
+from diffdlo.planar.physics import PHYSICAL, Physics
 from tests.conftest import crumpled
 
 

@@ -12,9 +12,9 @@ import torch
 
 from benchmarks import physics_checks as pc
 from conftest import crumpled
-from diffdlo.simulator import Simulator
-from diffdlo.params import CableParams, ParamsError, load_params
-from diffdlo.rod import params_for_rod, rod_properties
+from diffdlo.planar.simulator import Simulator
+from diffdlo.planar.params import CableParams, ParamsError, load_params
+from diffdlo.planar.rod import params_for_rod, rod_properties
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

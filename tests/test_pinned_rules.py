@@ -1,6 +1,6 @@
 """Rules pinned by hand-computed cases, each written against a one-line bug the rest of the suite let pass:
 
-* eq 2.6's node is round(a0 (N - 1)), not floor (diffdlo/task.py decode_node);
+* eq 2.6's node is round(a0 (N - 1)), not floor (diffdlo/tasks/task.py decode_node);
 * the ensemble world model is equivariant under translations and rotations: its prediction, made in the grasped
   node's frame, is rotated back with the inverse rotation (agents/models/ensemble.py);
 * the Levenberg-Marquardt step uses its damping (diffdlo/calibration/calibrate.py Linearization.step).
@@ -12,8 +12,8 @@ import torch
 
 from agents.models.ensemble import EnsembleDynamics
 from diffdlo.calibration.calibrate import Linearization
-from diffdlo.params import load_params
-from diffdlo.task import decode_node, decode_node_action, encode_node_action
+from diffdlo.planar.params import load_params
+from diffdlo.tasks.task import decode_node, decode_node_action, encode_node_action
 
 
 def test_the_node_is_rounded_not_floored():

@@ -9,7 +9,7 @@ import torch
 
 import diffdlo
 from diffdlo.envs import BatchedShapeControl
-from diffdlo.task import decode_node_action, encode_node_action
+from diffdlo.tasks.task import decode_node_action, encode_node_action
 from planners import SimObjective
 from planners import cem as cem_mod, gradient as grad_mod, greedy as greedy_mod
 from planners.cem import CEM, CEMPlanner

@@ -10,7 +10,7 @@ from tests.conftest import cli_error
 def test_ropes_start_near_their_straight_target():
     import torch
     from diffdlo import Simulator, load_params
-    from diffdlo.rewards import node_errors
+    from diffdlo.tasks.rewards import node_errors
     sim = Simulator(load_params("cable"), dtype=torch.float64)
     rope, target = pl.near_target_ropes(sim, 8, 0.05, torch.Generator().manual_seed(0))
     links = (rope[:, 1:] - rope[:, :-1]).norm(dim=-1)

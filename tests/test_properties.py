@@ -19,10 +19,10 @@ import diffdlo
 from agents import ppo, sac
 from agents.common.config import flat_names, flat_value, load_config
 from diffdlo.envs import BatchedShapeControl
-from diffdlo.forces import internal_forces
-from diffdlo.shapes import TargetError, straight_shape, target_shape
-from diffdlo.simulator import SimulationError
-from diffdlo.task import task_metrics
+from diffdlo.planar.forces import internal_forces
+from diffdlo.planar.shapes import TargetError, straight_shape, target_shape
+from diffdlo.planar.simulator import SimulationError
+from diffdlo.tasks.task import task_metrics
 
 settings.register_profile("diffdlo", derandomize=True, database=None, deadline=None, max_examples=25,
                           suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])

@@ -1,4 +1,4 @@
-"""The chain in 3-D (diffdlo/real/chain3d.py): forces against autograd, gradients through rollouts, the statics against
+"""The chain in 3-D (diffdlo/chain3d/chain.py): forces against autograd, gradients through rollouts, the statics against
 theory (the catenary, the Euler-Bernoulli cantilever), conservation laws and dissipation, the floor, held nodes, and
 refused inputs."""
 import math
@@ -6,8 +6,8 @@ import math
 import pytest
 import torch
 
-from diffdlo.real import chain3d
-from diffdlo.real.chain3d import ChainDivergedError, ChainError, ChainParams
+from diffdlo.chain3d import chain as chain3d
+from diffdlo.chain3d.chain import ChainDivergedError, ChainError, ChainParams
 
 F64 = torch.float64
 

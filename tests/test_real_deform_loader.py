@@ -1,4 +1,4 @@
-"""DEFORM's recordings are read exactly and safely (diffdlo/real/deform.py): files written here in DEFORM's format
+"""DEFORM's recordings are read exactly and safely (diffdlo/chain3d/deform.py): files written here in DEFORM's format
 (a pickled nested list of shape (T, 3, n)) come back exactly; a pickle that would import or call anything is refused
 without running it; malformed files are refused naming the file and the problem."""
 import io
@@ -9,8 +9,8 @@ import random
 import pytest
 import torch
 
-from diffdlo.real import deform
-from diffdlo.real.deform import RecordingError, load_recording, load_split
+from diffdlo.chain3d import deform
+from diffdlo.chain3d.deform import RecordingError, load_recording, load_split
 
 
 def deform_list(frames=5, markers=13, seed=0):

@@ -1,4 +1,4 @@
-"""The fit of the 3-D chain to recordings and DEFORM's evaluation protocol (diffdlo/real/fit.py) and the command
+"""The fit of the 3-D chain to recordings and DEFORM's evaluation protocol (diffdlo/chain3d/fit.py) and the command
 benchmarks/real_cable.py, on synthetic recordings only (DEFORM's recordings are never in the repository)."""
 import dataclasses
 import json
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from benchmarks import real_cable
-from diffdlo.real import chain3d, deform, fit
+from diffdlo.chain3d import chain as chain3d, deform, fit
 
 F64 = torch.float64
 HELD = (0, 1, -2, -1)
@@ -249,7 +249,7 @@ def test_the_residual_command_trains_on_a_physics_run_and_reports_both(tmp_path,
     """benchmarks.real_cable_residual: the physics values from a benchmarks.real_cable folder, the residual
     trained and saved, both errors reported, predictions written; a --physics folder without a fit is named."""
     from benchmarks import real_cable_residual
-    from diffdlo.real import residual
+    from diffdlo.chain3d import residual
     data, n = write_fake_dataset(tmp_path)
     phys = tmp_path / "phys"
     assert real_cable.main(["--data", str(data), "--out", str(phys), "--cables", "2", "--quick", "--no-progress",

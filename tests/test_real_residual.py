@@ -1,4 +1,4 @@
-"""The learned residual correction to the 3-D chain (diffdlo/real/residual.py), on synthetic recordings only
+"""The learned residual correction to the 3-D chain (diffdlo/chain3d/residual.py), on synthetic recordings only
 (DEFORM's recordings are never in the repository)."""
 import dataclasses
 import functools
@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from diffdlo.real import chain3d, deform, fit, residual
+from diffdlo.chain3d import chain as chain3d, deform, fit, residual
 
 from test_real_fit import HELD, TRUE, synthetic as fit_synthetic     # the held nodes, the true values, the chain
 

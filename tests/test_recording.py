@@ -15,7 +15,7 @@ import yaml
 
 import diffdlo
 from diffdlo.calibration import record
-from diffdlo.params import PARAMS_DIR
+from diffdlo.planar.params import PARAMS_DIR
 from diffdlo.calibration.recording import Recording, RecordingError, load_recording, recording_arrays, save_recording
 
 RECORD_EVERY = 10

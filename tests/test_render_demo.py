@@ -5,7 +5,8 @@ import torch
 import diffdlo
 
 pytest.importorskip("matplotlib")
-from diffdlo import demo, render  # noqa: E402
+from diffdlo.tasks import demo
+from diffdlo.utils import render  # noqa: E402
 
 
 def test_plot_and_gif_are_written(params, tmp_path):

@@ -76,7 +76,7 @@ def test_rewards_are_batched_and_unknown_names_raise(params):
 def test_route_side_gain_is_route_gain_plus_five_per_peg_brought_to_its_side(params):
     """A straight route under a peg: the rope moved from over the peg (wrong side) to the route earns the cm of
     error it removed plus 100 x SIDE_COST = 5; the reverse move loses as much."""
-    from diffdlo.routing import SIDE_COST
+    from diffdlo.tasks.routing import SIDE_COST
     n, length = params.n_nodes, params.length
     x = torch.linspace(-length / 2, length / 2, n, dtype=torch.float64)
     route = torch.stack([x, torch.zeros_like(x)], -1)

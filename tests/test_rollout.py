@@ -10,8 +10,8 @@ from agents.common.envs import TrainEnv
 from agents.common.evaluation import evaluate
 from agents.common.rollout import PolicyRollouts, moves_to_success, rank
 from diffdlo.envs import BatchedShapeControl
-from diffdlo.params import load_params
-from diffdlo.task import encode_node_action, greedy_drags
+from diffdlo.planar.params import load_params
+from diffdlo.tasks.task import encode_node_action, greedy_drags
 
 P = load_params("cable")
 TASK = dict(target="random", obs_type="points", action_type="node", reward="shape_gain", success_bonus=5.0,

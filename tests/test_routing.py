@@ -1,4 +1,4 @@
-"""The routing task's rules (diffdlo/routing.py): the side test on hand-made ropes (one that matches the route's
+"""The routing task's rules (diffdlo/tasks/routing.py): the side test on hand-made ropes (one that matches the route's
 shape but passes a peg on the wrong side), the layouts (shipped, drawn, checked) and the start beside the board."""
 import math
 
@@ -6,9 +6,10 @@ import pytest
 import torch
 
 import diffdlo
-from diffdlo import contact, routing
-from diffdlo.layouts import make_layouts
-from diffdlo.routing import Layout, LayoutError
+from diffdlo.planar import contact
+from diffdlo.tasks import routing
+from diffdlo.tasks.layouts import make_layouts
+from diffdlo.tasks.routing import Layout, LayoutError
 
 F64 = torch.float64
 

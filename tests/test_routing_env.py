@@ -10,9 +10,9 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 import diffdlo
-from diffdlo import routing, task
+from diffdlo.tasks import routing, task
 from diffdlo.envs import ROUTING_ENV_ID, BatchedShapeControl
-from diffdlo.shapes import TargetError
+from diffdlo.planar.shapes import TargetError
 
 
 def test_the_routing_env_passes_gymnasiums_and_sb3s_checkers():
@@ -65,7 +65,7 @@ def test_the_pictures_draw_the_pegs():
     env = BatchedShapeControl(1, target="route:hook_wrap", reward="route_gain", obs_type="image", image_size=128,
                               view_size=0.5)
     obs, _ = env.reset(seed=0)
-    grey = torch.tensor(diffdlo.image.PEG_COLOR, dtype=torch.int32)
+    grey = torch.tensor(diffdlo.tasks.image.PEG_COLOR, dtype=torch.int32)
     near = ((obs["image"][0].to(torch.int32) - grey).abs().amax(-1) < 40).sum()
     assert int(near) >= 4
 
@@ -157,7 +157,7 @@ def test_a_start_across_the_board_lies_among_the_pegs_and_clear_of_them():
     centre = lambda s: (s.pos.mean(1) - s.target.mean(1)).norm(dim=-1)
     assert (centre(a) < 0.06).all() and (centre(b) > 0.15).all()
     for s in (a, b):                 # drawn clear of the pegs; the settle may bring it into light contact
-        depth = diffdlo.contact.depth(s.pos, s.pegs, across.params.rope_radius)
+        depth = diffdlo.planar.contact.depth(s.pos, s.pegs, across.params.rope_radius)
         assert (depth < across.params.contact_width).all()
     with pytest.raises(ValueError, match="route_start"):
         BatchedShapeControl(1, target="route", reward="route_gain", route_start="on_top")
@@ -184,13 +184,13 @@ def test_an_episode_among_pegs_never_stops_on_a_rope_put_down_inside_a_peg(tmp_p
     sim = core.sim
     settled, _ = sim._run_move(state.pos, torch.zeros_like(state.pos), node[None], delta[None].to(sim.dtype),
                                sim._check_pegs(state.pos, state.pegs), pin[None], None, 0, False, False)
-    assert float(diffdlo.contact.depth(settled, state.pegs, params.rope_radius)) > params.rope_radius   # the case
+    assert float(diffdlo.planar.contact.depth(settled, state.pegs, params.rope_radius)) > params.rope_radius   # the case
     action = torch.cat([task.encode_node_action(node, delta, params.n_nodes, params.action_scale),
                         task.encode_pin(pin[None], params.n_nodes, torch.float64)]).numpy()
     for step in range(3):
         env.step(action if step == 0 else env.action_space.sample())
         s = core.get_state(generators=False)
-        assert float(diffdlo.contact.depth(s.pos, s.pegs, params.rope_radius)) < params.rope_radius
+        assert float(diffdlo.planar.contact.depth(s.pos, s.pegs, params.rope_radius)) < params.rope_radius
     venv = gym.make_vec(ROUTING_ENV_ID, num_envs=32, action_type="node_pin", route_start="across")
     venv.reset(seed=0)
     venv.action_space.seed(0)

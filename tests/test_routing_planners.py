@@ -5,7 +5,7 @@ import json
 import pytest
 import torch
 
-from diffdlo import routing, task
+from diffdlo.tasks import routing, task
 from diffdlo.envs import BatchedShapeControl
 from planners import SimObjective
 from planners import greedy as greedy_mod

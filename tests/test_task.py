@@ -1,4 +1,4 @@
-"""The task's rules (diffdlo/task.py), the env's one state object and its one autoreset, and the composed configs."""
+"""The task's rules (diffdlo/tasks/task.py), the env's one state object and its one autoreset, and the composed configs."""
 import dataclasses
 
 import numpy as np
@@ -8,7 +8,7 @@ import torch
 import diffdlo
 from agents.common import config
 from agents import sac
-from diffdlo import task
+from diffdlo.tasks import task
 from diffdlo.envs import BatchedShapeControl, EnvOptions
 
 

@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env
 
 import diffdlo
 from diffdlo.envs import ENV_ID, BatchedShapeControl
-from diffdlo.shapes import CURVE_MAX_TURN_DEG, check_target, random_curve, straight_shape
+from diffdlo.planar.shapes import CURVE_MAX_TURN_DEG, check_target, random_curve, straight_shape
 
 ZERO_DRAG = [0.0, 0.5, 0.5]          # node 0, dx = dy = 0
 EPS_DEG = 1e-7

@@ -14,7 +14,7 @@ from agents.common.config import load_config
 from agents.common.evaluation import episode_records, evaluate
 from benchmarks.compare.records import _episode, as_results, floor_error, make_record
 from benchmarks.compare.stats import row_stats, success_move
-from diffdlo import task
+from diffdlo.tasks import task
 from diffdlo.envs import BatchedShapeControl, EnvOptions
 from planners import greedy
 from planners.common import build_run, run_episode

@@ -1,4 +1,4 @@
-"""The fused Triton kernel (backend "triton", diffdlo/backends/triton_kernel.py) against the eager torch reference path.
+"""The fused Triton kernel (backend "triton", diffdlo/planar/backends/triton_kernel.py) against the eager torch reference path.
 
 Marked ``triton`` (kept out of the default run; .ci/run runs them after installing the [gpu] extra):
 ``TRITON_INTERPRET=1 python -m pytest -m triton`` runs the kernels (the move and its adjoint) in Triton's CPU
@@ -20,7 +20,7 @@ from conftest import crumpled
 triton = pytest.importorskip("triton")
 from benchmarks.contact_checks import line  # noqa: E402
 from benchmarks.gradients import triton_gradients  # noqa: E402
-from diffdlo.backends import triton_kernel  # noqa: E402
+from diffdlo.planar.backends import triton_kernel  # noqa: E402
 
 pytestmark = pytest.mark.triton
 
@@ -68,10 +68,10 @@ def test_move_matches_eager(params, dtype, tol):
     assert bool(ib.settled[3]) and not bool(ib.settled[0])      # one rope settles early, one runs to the cap
     assert int(ib.substeps[3]) == p.settle_check_every and int(ib.substeps[0]) > p.settle_max_substeps
     # final velocities, from the kernel's raw outputs
-    clipped = diffdlo.control.clip_drag(delta, p.max_disp)
-    steps = diffdlo.control.path_substeps(clipped.norm(dim=-1), p)
+    clipped = diffdlo.planar.control.clip_drag(delta, p.max_disp)
+    steps = diffdlo.planar.control.path_substeps(clipped.norm(dim=-1), p)
     _, vb, *_ = tri._triton_apply(pos, vel, node, clipped, steps, -1, None)
-    speed = diffdlo.control.drag_speed(clipped.norm(dim=-1), p)
+    speed = diffdlo.planar.control.drag_speed(clipped.norm(dim=-1), p)
     va = ref._move_eager(pos, vel, node, clipped, speed, steps)[1]
     assert (va - vb).norm(dim=-1).max().item() < tol * 10
 
@@ -208,7 +208,7 @@ def test_bad_inputs_name_the_problem(params):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert "ERR backend 'triton' is unavailable on cpu" in out.stdout and "TRITON_INTERPRET=1" in out.stdout, out
     # without triton importable
-    code = ("import sys\nsys.modules['triton'] = None\nimport diffdlo\nfrom diffdlo.backends import triton_kernel\n"
+    code = ("import sys\nsys.modules['triton'] = None\nimport diffdlo\nfrom diffdlo.planar.backends import triton_kernel\n"
             "assert not triton_kernel.available()\ntry:\n    diffdlo.Simulator(backend='triton')\n"
             "except RuntimeError as e:\n    print('ERR', e)\n"
             "print('AUTO', diffdlo.Simulator().backend, diffdlo.Simulator().engine == 'triton')\n")
@@ -250,13 +250,13 @@ def test_gradient_through_the_returned_state_equals_eager(params, max_settle):
     node = torch.randint(0, p.n_nodes, (5,), generator=gen).to(DEVICE)
     delta = ((torch.rand(5, 2, generator=gen, dtype=torch.float64) * 2 - 1) * 0.03).to(DEVICE)
     weights = torch.randn(2, *pos.shape, dtype=torch.float64, generator=gen).to(DEVICE)
-    clipped = diffdlo.control.clip_drag(delta, p.max_disp)
-    steps = diffdlo.control.path_substeps(clipped.norm(dim=-1), p)
+    clipped = diffdlo.planar.control.clip_drag(delta, p.max_disp)
+    steps = diffdlo.planar.control.path_substeps(clipped.norm(dim=-1), p)
     grads, capped = [], None
     for sim in (ref, tri):
         x, v, d = (t.clone().requires_grad_(True) for t in (pos, 0.01 * weights[1], clipped))
         if sim is ref:
-            speed = diffdlo.control.drag_speed(d.norm(dim=-1), p)
+            speed = diffdlo.planar.control.drag_speed(d.norm(dim=-1), p)
             out_x, out_v, _, _, settled, _ = sim._move_eager(x, v, node, d, speed, steps)
             capped = ~settled
         else:

@@ -13,10 +13,10 @@ from agents.common import config as config_lib
 from agents.common.checkpoints import CHECKPOINT, load_checkpoint
 from diffdlo.utils.signals import Interrupted, exit_code
 from diffdlo.utils.files import OutBusyError
-from diffdlo.params import ParamsError
-from diffdlo.rewards import REWARDS
-from diffdlo.shapes import TARGET_NAMES, TargetError
-from diffdlo.task import ACTION_TYPES, OBS_TYPES, PICTURE_OBS
+from diffdlo.planar.params import ParamsError
+from diffdlo.tasks.rewards import REWARDS
+from diffdlo.planar.shapes import TARGET_NAMES, TargetError
+from diffdlo.tasks.task import ACTION_TYPES, OBS_TYPES, PICTURE_OBS
 
 
 def positive_int(text: str) -> int:

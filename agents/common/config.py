@@ -17,8 +17,8 @@ import yaml
 
 from diffdlo.utils.checks import check_fields, field_kinds, option
 from diffdlo.envs.options import EnvOptions, env_field
-from diffdlo.params import PARAMS_DIR, CableParams, load_params   # one folder: cable params and presets
-from diffdlo.task import COORDINATE_OBS, PICTURE_OBS
+from diffdlo.planar.params import PARAMS_DIR, CableParams, load_params   # one folder: cable params and presets
+from diffdlo.tasks.task import COORDINATE_OBS, PICTURE_OBS
 
 SECTIONS = ("task", "run", "inputs")
 ENCODERS = ("nature", "keypoints")

@@ -7,7 +7,7 @@ import torch
 
 from agents.common.config import RunOptions, TaskOptions
 from diffdlo.envs import BatchedShapeControl, EnvState
-from diffdlo.params import CableParams
+from diffdlo.planar.params import CableParams
 
 
 class TrainEnv:

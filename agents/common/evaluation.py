@@ -15,8 +15,8 @@ from agents.common.config import RunOptions, TaskOptions
 from agents.common.envs import TrainEnv, make_env
 from diffdlo.envs import BatchedShapeControl
 from diffdlo.utils.files import shapes_record, write_json_atomic
-from diffdlo.params import CableParams
-from diffdlo.task import ROUTE, ROUTE_PREFIX, target_label
+from diffdlo.planar.params import CableParams
+from diffdlo.tasks.task import ROUTE, ROUTE_PREFIX, target_label
 
 # an episode's record in results.json; start_error (the shape error after reset) identifies the start shape, so a
 # report can check that two methods' episode i are the same episode (planners record it too); errors and
@@ -181,7 +181,7 @@ def write_results(out: Path, method: str, task: TaskOptions, seed: int, result: 
     try:
         import matplotlib
         matplotlib.use("Agg")
-        from diffdlo.render import plot_ropes
+        from diffdlo.utils.render import plot_ropes
         import matplotlib.pyplot as plt
         k = min(max_pictures, len(eps))
         titles = [f"{'success' if e['success'] else 'fail'}: {e['final_error'] * 100:.2f} cm, {e['steps']} steps"

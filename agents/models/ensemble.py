@@ -36,8 +36,8 @@ import torch
 import torch.nn as nn
 
 from agents.common.envs import EpisodeTracker
-from diffdlo.params import CableParams
-from diffdlo.task import decode_node_action, decode_pin
+from diffdlo.planar.params import CableParams
+from diffdlo.tasks.task import decode_node_action, decode_pin
 from planners.cem import CEM, optimize_together
 from planners.objective import sequence_cost
 

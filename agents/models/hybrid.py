@@ -15,7 +15,7 @@ policy trained on random curves needs to generalize.
 
 Among pegs (a route: the points observation carries "pegs") the error is measured on the board, so the difference is
 NOT centred (rope - route), and each peg slot adds four numbers: its centre relative to the rope's centroid and its
-radius (rope lengths), and its side gap, (the rope's winding round it - the route's) / 2 pi (``diffdlo.routing.winding``;
+radius (rope lengths), and its side gap, (the rope's winding round it - the route's) / 2 pi (``diffdlo.tasks.routing.winding``;
 about 0 on the route's side, about +-1 on the other): 4N + 2 + 4 K numbers, an empty slot all zeros. The side gap is
 the success test's own quantity, read from the observation (no privileged input).
 """
@@ -27,11 +27,11 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from diffdlo.routing import winding
-from diffdlo.task import decode_drag, decode_node, encode_node_action, encode_pin
+from diffdlo.tasks.routing import winding
+from diffdlo.tasks.task import decode_drag, decode_node, encode_node_action, encode_pin
 
 
-# ====================================================================== hybrid action <-> env action (eq 2.6, diffdlo.task)
+# ====================================================================== hybrid action <-> env action (eq 2.6, diffdlo.tasks.task)
 def to_env_action(node: torch.Tensor, drag: torch.Tensor, n_nodes: int) -> torch.Tensor:
     """(B,) node ids and (B, 2) drags in [-1, 1] (clipped) -> (B, 3) env node actions in [0, 1]."""
     if node.numel() and (int(node.min()) < 0 or int(node.max()) >= n_nodes):
@@ -63,7 +63,7 @@ def split_pin(stored: torch.Tensor) -> torch.Tensor:
 
 def to_env_pin_action(node: torch.Tensor, drag: torch.Tensor, choice: torch.Tensor, n_nodes: int) -> torch.Tensor:
     """Node ids (B,), drags (B, 2) in [-1, 1] and pin choices (B,) in [0, N] -> (B, 4) "node_pin" env actions: the
-    node action, then ``diffdlo.task.encode_pin`` of node c - 1 (-1: none)."""
+    node action, then ``diffdlo.tasks.task.encode_pin`` of node c - 1 (-1: none)."""
     if choice.numel() and (int(choice.min()) < 0 or int(choice.max()) > n_nodes):
         raise ValueError(f"pin choices must lie in [0, {n_nodes}], got {choice.tolist()}")
     pin = encode_pin(choice - 1, n_nodes, drag.dtype).unsqueeze(-1)

@@ -49,8 +49,8 @@ import torch.nn.functional as F
 
 from agents.models.ensemble import symmetry_transform
 from agents.models.networks import mlp
-from diffdlo.params import CableParams
-from diffdlo.task import decode_node_action, decode_pin
+from diffdlo.planar.params import CableParams
+from diffdlo.tasks.task import decode_node_action, decode_pin
 
 FRAMES = ("grasp", "centroid")
 KINDS = ("vector", "keypoints")

@@ -15,8 +15,8 @@ from agents.models.ensemble import EnsembleDynamics, k_step_errors
 from agents.models.latent import LatentWorldModel
 from agents.common.envs import make_env
 from agents.models.rssm import RSSM, decoded_positions
-from diffdlo.params import CableParams
-from diffdlo.task import COORDINATE_OBS
+from diffdlo.planar.params import CableParams
+from diffdlo.tasks.task import COORDINATE_OBS
 
 
 @torch.no_grad()

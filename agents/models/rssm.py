@@ -53,8 +53,8 @@ import torch.nn.functional as F
 from agents.common.buffer import as_dict
 from agents.common.envs import EpisodeTracker
 from agents.models.networks import ObsEncoder, mlp
-from diffdlo.rewards import shape_error
-from diffdlo.task import POINT_OBS, decode_node
+from diffdlo.tasks.rewards import shape_error
+from diffdlo.tasks.task import POINT_OBS, decode_node
 from planners.cem import CEM, optimize_together
 
 State = dict[str, torch.Tensor]   # {"h": (..., D), "z": (..., S), "mean": (..., S), "std": (..., S)}

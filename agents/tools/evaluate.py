@@ -28,8 +28,8 @@ from agents.common.evaluation import evaluate, write_results
 from agents.tools.policy import load_policy
 from agents.common.rollout import PolicyRollouts, check_acts_by_rollouts
 from diffdlo.utils.files import check_fresh_out, out_lock
-from diffdlo.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
-from diffdlo.task import resolve_target, target_label
+from diffdlo.planar.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
+from diffdlo.tasks.task import resolve_target, target_label
 
 GIF_FPS = 4            # moves per second
 GIF_HOLD = 4           # extra frames showing each episode's end
@@ -131,7 +131,7 @@ class EpisodeRecorder:
 
 def write_gif(path: Path, recorder: EpisodeRecorder, targets: torch.Tensor, episodes: list[dict[str, Any]]) -> Path:
     """The recorded episodes one after another, each against its target, its last frame held a moment."""
-    from diffdlo.render import save_gif
+    from diffdlo.utils.render import save_gif
     frames, frame_targets, titles, grasped = [], [], [], []
     for i, (ropes, nodes) in enumerate(zip(recorder.frames, recorder.grasped)):
         e = episodes[i]

@@ -13,7 +13,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from diffdlo.rewards import within_tolerance
+from diffdlo.tasks.rewards import within_tolerance
 
 
 def t_quantile(p: float, df: float) -> float:
@@ -87,7 +87,7 @@ def success_move(errors: Sequence[float], worst_errors: Sequence[float] | None, 
     """The move at which an episode would have succeeded at tolerance (``tol``, ``worst_tol``), from its recorded
     errors after the reset and after each move (an episode record's "errors" and "worst_errors", both steps + 1
     long): the first k with errors[k] < tol and, when ``worst_tol`` is given, worst_errors[k] < worst_tol (the env's
-    test, ``diffdlo.rewards.within_tolerance``); 0 for a start already within it; None where no recorded move is.
+    test, ``diffdlo.tasks.rewards.within_tolerance``); 0 for a start already within it; None where no recorded move is.
 
     The answer is read from the moves the episode made: it ended at its own success (at the tolerance it ran with)
     or after max_steps, so at a looser pair it is exact, and at a tighter one an episode that succeeded at its own

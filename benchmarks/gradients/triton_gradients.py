@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--device", default="cpu", help="cpu (needs TRITON_INTERPRET=1) or cuda")
     parser.add_argument("--full", action="store_true", help="also one move with the real params (~2 min more)")
     args = parser.parse_args(argv)
-    from diffdlo.backends import triton_kernel
+    from diffdlo.planar.backends import triton_kernel
     reason = triton_kernel.device_reason(torch.device(args.device))
     if reason is not None:
         parser.error(f"--device {args.device}: {reason}")

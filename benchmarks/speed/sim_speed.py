@@ -23,7 +23,7 @@ its gradient w.r.t. the start positions and the drag (largest error over largest
 
     python benchmarks/speed/sim_speed.py --pegs 4 [--batches 64 1024] [--dtype float32] [--repeats 5]
 
-With --pegs K it times instead the moves with pegs and the pin (diffdlo/contact.py) on the default engine (the C++
+With --pegs K it times instead the moves with pegs and the pin (diffdlo/planar/contact.py) on the default engine (the C++
 kernel on the CPU): K pegs of radius 1-2 cm on a 5 cm circle round the origin, among the random start shapes (those
 that start clear of them: the rope's axis outside every peg), against the same moves without pegs, and the same
 moves with a pin (a random node other than the grasped one) against no pin; for each B the share of ropes that
@@ -47,7 +47,7 @@ import time
 import torch
 
 import diffdlo
-from diffdlo import contact
+from diffdlo.planar import contact
 
 
 def _sync() -> None:

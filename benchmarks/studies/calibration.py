@@ -32,8 +32,8 @@ from tqdm import tqdm
 from diffdlo import Simulator
 from diffdlo.calibration import calibrate
 from diffdlo.utils.files import check_fresh_out, out_lock, write_json_atomic, write_text_atomic
-from diffdlo.params import load_params
-from diffdlo.physics import PHYSICAL
+from diffdlo.planar.params import load_params
+from diffdlo.planar.physics import PHYSICAL
 from diffdlo.calibration.record import make_recording
 
 from .cmaes import cma_es

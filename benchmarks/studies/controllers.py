@@ -15,7 +15,7 @@ import time
 import torch
 
 import diffdlo
-from diffdlo import control
+from diffdlo.planar import control
 
 
 def main() -> None:

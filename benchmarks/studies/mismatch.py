@@ -34,10 +34,10 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from diffdlo import task
+from diffdlo.tasks import task
 from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic, write_text_atomic
-from diffdlo.params import ParamsError, load_params
-from diffdlo.shapes import TargetError
+from diffdlo.planar.params import ParamsError, load_params
+from diffdlo.planar.shapes import TargetError
 from planners.cem import CEMPlanner
 from planners.common import (DEFAULT_MAX_STEPS, PHYSICAL, build_run, check_planner_options, check_same_moves,
                              parse_scales, physical_values, refuse, run_episode, scaled_params)

@@ -30,9 +30,9 @@ import torch
 
 from agents.models.ensemble import NEAR_PEG, peg_clearance
 from agents.tools.policy import load_policy
-from diffdlo.rewards import node_errors
-from diffdlo.routing import route_errors
-from diffdlo.task import decode_node_action, decode_pin
+from diffdlo.tasks.rewards import node_errors
+from diffdlo.tasks.routing import route_errors
+from diffdlo.tasks.task import decode_node_action, decode_pin
 from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic
 
 MODEL_NAMES = {"ensemble": "PETS-style ensemble", "latent": "latent world model"}

@@ -4,7 +4,7 @@
     python -m benchmarks.studies.perception_pegs --perception models/perception64.pt models/perception64_pegs.pt --out runs/perception_pegs
 
 Held-out pictures (``--seed``, 7 by default: no training of the committed checkpoints drew from it), ``--pictures``
-of each kind, on random boards (diffdlo.routing.random_layout) drawn as the routing env draws them (64 px, end
+of each kind, on random boards (diffdlo.tasks.routing.random_layout) drawn as the routing env draws them (64 px, end
 markers, grey pegs under the rope; diffdlo.perception.boards): the env's starts beside and across the board, ropes
 after 1-8 random moves among the pegs, ropes lying on the route near its pegs (the end of an episode), and the routes
 themselves in the target's palette (the route picture); and each fixed layout's route picture and a rope lying on
@@ -28,12 +28,12 @@ from pathlib import Path
 
 import torch
 
-from diffdlo.params import load_params
+from diffdlo.planar.params import load_params
 from diffdlo.perception import (Perception, PerceptionError, TrainConfig, held_out, node_error, refine, render_uint8,
                                 unpeg)
-from diffdlo import routing
+from diffdlo.tasks import routing
 from diffdlo.perception.boards import BOARD_KINDS, MAX_PEGS, board_shapes
-from diffdlo.simulator import Simulator
+from diffdlo.planar.simulator import Simulator
 
 KINDS = BOARD_KINDS + ("route",)          # "route": the target picture of the route, with its pegs
 READINGS = ("net", "refined_blind", "refined", "net_unpegged", "refined_unpegged")

@@ -8,7 +8,7 @@ where the move left it, so in the simulation the cap is part of the dynamics and
 a rope the cap stopped was still moving, so a real cable would go on. This measures by how much, in the regime the
 precise task ends in: ropes near a straight target (a straight rope in a random direction, bent by a random walk of
 its link angles of step --sigma, so its mean node error is a few millimetres), then one greedy move (the node
-farthest from its place dragged towards it, diffdlo.task.greedy_drags), as the last moves of an episode are.
+farthest from its place dragged towards it, diffdlo.tasks.task.greedy_drags), as the last moves of an episode are.
 
 For each rope: the shape error after the move, whether the cap (not the threshold) ended it, and the mean and worst
 node displacement (centroids aligned, as the task's errors) between the state the move returned and the state after
@@ -24,10 +24,10 @@ from pathlib import Path
 
 import torch
 
-from diffdlo import task
-from diffdlo.params import ParamsError, load_params
-from diffdlo.rewards import node_errors
-from diffdlo.simulator import Simulator
+from diffdlo.tasks import task
+from diffdlo.planar.params import ParamsError, load_params
+from diffdlo.tasks.rewards import node_errors
+from diffdlo.planar.simulator import Simulator
 from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic
 
 RELAX_SECONDS = (1.0, 5.0, 30.0)

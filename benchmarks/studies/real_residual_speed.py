@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from diffdlo.real import deform, fit, residual
+from diffdlo.chain3d import deform, fit, residual
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -21,11 +21,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-from diffdlo import task
+from diffdlo.tasks import task
 from diffdlo.envs import BatchedShapeControl
-from diffdlo.routing import ROUTE_STARTS
-from diffdlo.shapes import TargetError
-from diffdlo.params import load_params
+from diffdlo.tasks.routing import ROUTE_STARTS
+from diffdlo.planar.shapes import TargetError
+from diffdlo.planar.params import load_params
 from diffdlo.utils.files import check_fresh_file
 
 PLANNERS = ("greedy", "cem", "gradient")

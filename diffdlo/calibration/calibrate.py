@@ -35,8 +35,8 @@ from typing import Any
 
 import torch
 
-from ..physics import PHYSICAL, Physics
-from ..simulator import Simulator
+from ..planar.physics import PHYSICAL, Physics
+from ..planar.simulator import Simulator
 
 # Named combinations of log parameters (log k_s, log k_b, log k_d, log mass) reported by identifiability.
 COMBINATIONS = {"k_s/k_d": (1, 0, -1, 0), "k_b/k_d": (0, 1, -1, 0), "k_b/k_s": (-1, 1, 0, 0), "mass/k_d": (0, 0, -1, 1),
@@ -475,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
     import yaml
 
     from ..utils.files import check_fresh_out, out_lock
-    from ..params import ParamsError, load_params
+    from ..planar.params import ParamsError, load_params
     from .record import make_recording
     from .recording import RecordingError, load_recording
 

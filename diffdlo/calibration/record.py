@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .. import control
-from ..physics import PHYSICAL, physical_values as true_params, scaled_params   # the hidden rope
-from ..params import CableParams, ParamsError, load_params
+from ..planar import control
+from ..planar.physics import PHYSICAL, physical_values as true_params, scaled_params   # the hidden rope
+from ..planar.params import CableParams, ParamsError, load_params
 from .recording import Recording, save_recording
-from ..simulator import Simulator
+from ..planar.simulator import Simulator
 
 PROG = "python -m diffdlo.calibration.record"
 

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from ..utils.files import replacing
-from ..params import CableParams
+from ..planar.params import CableParams
 
 SOURCES = ("simulator", "real")
 REQUIRED_KEYS = ("positions", "times", "move_node", "move_delta", "move_start", "move_end", "meta")

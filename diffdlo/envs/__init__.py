@@ -7,11 +7,11 @@
   "node_pin", ...).
 - ``BatchedShapeControl`` (core.py): the torch-native batched core both are built on (tensors in, tensors out); its
   state is one ``EnvState`` (state.py), its options one ``EnvOptions`` (options.py). The task's rules are
-  diffdlo/task.py's.
+  diffdlo/tasks/task.py's.
 """
 from gymnasium.envs.registration import register, registry
 
-from ..task import ACTION_TYPES, OBS_TYPES
+from ..tasks.task import ACTION_TYPES, OBS_TYPES
 from .core import BatchedShapeControl
 from .options import DEFAULT_VIEW_SIZE, EnvOptions
 from .shape_control import ShapeControlEnv

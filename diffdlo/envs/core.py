@@ -2,7 +2,7 @@
 
 It holds B ropes in ONE state object (``EnvState``) and does all the work in torch on the
 simulator's device: one batched ``Simulator.move`` per step, one batched ``Simulator.settle`` per reset. The task's
-rules (targets, action decoding, rewards, episode end, observations) are diffdlo/task.py's; this file holds the
+rules (targets, action decoding, rewards, episode end, observations) are diffdlo/tasks/task.py's; this file holds the
 state and the plumbing. ``ShapeControlEnv`` (gymnasium.Env, ``gymnasium.make("DiffDLO/ShapeControl-v0")``) is the
 core with B = 1 plus a numpy conversion; ``ShapeControlVectorEnv`` (diffdlo/envs/vector.py, ``gymnasium.make_vec``)
 is the core with B = num_envs. Both wrap the same code, so they cannot disagree.
@@ -17,11 +17,11 @@ import torch
 from gymnasium import spaces
 from gymnasium.utils import seeding
 
-from .. import image as rimage
-from .. import routing, task
-from ..shapes import TARGET_NAMES, check_finite_nodes, check_link_lengths, check_shape, target_shape
-from ..simulator import Simulator
-from ..task import ACTION_DIMS
+from ..tasks import image as rimage
+from ..tasks import routing, task
+from ..planar.shapes import TARGET_NAMES, check_finite_nodes, check_link_lengths, check_shape, target_shape
+from ..planar.simulator import Simulator
+from ..tasks.task import ACTION_DIMS
 from .options import EnvOptions, _choice_error, check_actions, env_options
 from .state import EnvState
 
@@ -40,7 +40,7 @@ class BatchedShapeControl:
     max_episode_steps, action_scale, perception, perception_refine), not both; the shared gymnasium envs take the
     same. ``options`` holds them resolved (the params, the episode length). num_envs: B. device, dtype, backend: of
     the simulator (backend "torch" forces the eager reference path).
-    Episode end: diffdlo.task.step_outcome (Algorithm 2 with the error metric). ``info["is_success"]`` tells a
+    Episode end: diffdlo.tasks.task.step_outcome (Algorithm 2 with the error metric). ``info["is_success"]`` tells a
     success from a failure: ``terminated`` alone does not, under on_exit="fail".
     """
 
@@ -355,7 +355,7 @@ class BatchedShapeControl:
                                    size=size or self.image_size, view_size=self.view_size)
 
     def observe(self) -> Any:
-        """The current observation of every env (diffdlo.task.observe): a dict of (B, ...) tensors, or a (B, N, 2)
+        """The current observation of every env (diffdlo.tasks.task.observe): a dict of (B, ...) tensors, or a (B, N, 2)
         tensor for obs_type="distance"."""
         s = self._state
         if self.obs_type in task.DRAWN_OBS and self._pictures is None:

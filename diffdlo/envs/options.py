@@ -11,13 +11,13 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .. import task
+from ..tasks import task
 from ..utils.checks import check_fields, option
-from ..params import CableParams, load_params
-from ..rewards import BOARD_REWARDS, PEG_REWARDS, REWARDS
-from ..routing import ROUTE_STARTS
-from ..shapes import CURVE_MAX_TURN_DEG, random_curve
-from ..task import ACTION_TYPES, EXIT_RULES, OBS_TYPES
+from ..planar.params import CableParams, load_params
+from ..tasks.rewards import BOARD_REWARDS, PEG_REWARDS, REWARDS
+from ..tasks.routing import ROUTE_STARTS
+from ..planar.shapes import CURVE_MAX_TURN_DEG, random_curve
+from ..tasks.task import ACTION_TYPES, EXIT_RULES, OBS_TYPES
 
 # Side [m] of the square view window of image observations and pixel actions, centred at the origin: x, y in
 # [-0.5, 0.5]. The rope is 0.5 m long and starts centred at the origin, so a start shape always fits with room for
@@ -65,15 +65,15 @@ class EnvOptions:
     Checked when built (a ValueError names the field, what is allowed and the value). ``resolve()`` gives the
     options the env runs with: the params a CableParams (action_scale applied), max_steps, success_tol and
     success_bonus filled in from the params (success_worst_tol as given), max_steps cut to max_episode_steps, the
-    target checked; those are also the rules ``diffdlo.task.step_outcome`` reads (with ``workspace``). Change a
+    target checked; those are also the rules ``diffdlo.tasks.task.step_outcome`` reads (with ``workspace``). Change a
     resolved one by resolving a ``dataclasses.replace`` of the options as given: the filled-in values follow the
     params they came from.
     The simulator's placement (device, dtype, backend) is not an option: the env takes it beside them.
     """
     target: Any = option("random", help=(
         '"random" (one of TARGET_NAMES drawn at every reset, the thesis\'s default), "random_curve" (a smooth random '
-        "curve drawn at every reset, diffdlo.shapes.random_curve), a name in TARGET_NAMES, an (N, 2) array/tensor, "
-        'or a .npy/.yaml path; or a ROUTE among pegs (the wire-harness task, diffdlo/routing.py): "route" (a random '
+        "curve drawn at every reset, diffdlo.planar.shapes.random_curve), a name in TARGET_NAMES, an (N, 2) array/tensor, "
+        'or a .npy/.yaml path; or a ROUTE among pegs (the wire-harness task, diffdlo/tasks/routing.py): "route" (a random '
         'board of 2-4 pegs and a route drawn at every reset, the rope starting beside it) or "route:NAME" (a fixed '
         "layout of diffdlo/layouts, or route:PATH.yaml). Drawn targets come from the env's per-env generator, seeded "
         "like the start shapes"))
@@ -89,7 +89,7 @@ class EnvOptions:
         '"pixel" (eq 2.5, [0, 1]^4: (a0, a1) = (column, row) fractions of the image view window, row 0 at the top; '
         'the node nearest to that point is grasped; dx, dy as for "node") or "node_pin" (ours, [0, 1]^4: "node"\'s '
         "three, then a second gripper's node held still during the drag, round(a3 N) - 1: -1 (a3 < 1/(2N)) or the "
-        'grasped node is no pin; diffdlo.task.decode_pin) or "pixel_pin" (ours, [0, 1]^6: "pixel"\'s four, then the '
+        'grasped node is no pin; diffdlo.tasks.task.decode_pin) or "pixel_pin" (ours, [0, 1]^6: "pixel"\'s four, then the '
         "second gripper's point (column, row): the node nearest it is held, none where that is the grasped node). "
         "Actions outside [0, 1] are clipped to [0, 1]; NaN/inf or a wrong shape raise ValueError"))
     reward: str = option("position_orientation", choices=REWARDS, help=(
@@ -107,10 +107,10 @@ class EnvOptions:
         "truncated after min(max_steps, max_episode_steps) moves, as ``gymnasium.make``'s TimeLimit wrapper over "
         "the env's own truncation does. None: max_steps alone"))
     success_tol: float | None = option(None, "(0, inf)", says="a positive finite number [m]", help=(
-        "shape error [m] (the mean node distance, diffdlo.rewards.shape_error) below which a move succeeds (None: "
+        "shape error [m] (the mean node distance, diffdlo.tasks.rewards.shape_error) below which a move succeeds (None: "
         "params.success_tol: 0.01 in params/cable.yaml, Table 2.1)"))
     success_worst_tol: float | None = option(None, "(0, inf)", says="a positive finite number [m] or None", help=(
-        "worst node error [m] (the largest node distance, diffdlo.rewards.worst_node_error) below which a move "
+        "worst node error [m] (the largest node distance, diffdlo.tasks.rewards.worst_node_error) below which a move "
         "succeeds too: success is shape error < success_tol AND worst node error < success_worst_tol (None: no "
         "worst-node condition, the thesis's test)"))
     image_size: int = option(64, "[8, inf)", says="an integer >= 8", help=(

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from gymnasium.utils import seeding
 
-from ..task import CUSTOM
+from ..tasks.task import CUSTOM
 
 
 @dataclasses.dataclass

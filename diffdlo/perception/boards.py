@@ -1,6 +1,6 @@
 """Ropes among pegs: the pictures of the routing task (docs/ROUTING.md) that the perception reads there.
 
-``board_shapes`` draws ropes on random boards (``diffdlo.routing.random_layout``) as the routing env shows them: its
+``board_shapes`` draws ropes on random boards (``diffdlo.tasks.routing.random_layout``) as the routing env shows them: its
 starts beside and across the board, settled among the pegs (the env's own ``routing.start_beside`` /
 ``start_across``), ropes after random moves among the pegs, and ropes lying on the route near its pegs, as at the end
 of an episode. The fine-tuning (``python -m diffdlo.perception --pegs-share``) and the measurement
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import torch
 
-from .. import routing
-from ..params import CableParams
+from ..tasks import routing
+from ..planar.params import CableParams
 
 BOARD_KINDS = ("beside", "across", "moved", "on_route")
 MAX_PEGS = 4            # the routing env's default peg slots (EnvOptions.max_pegs); random boards hold 2-4

@@ -1,6 +1,6 @@
 """Perception: the rope's node positions, in order, read back from the env's own pictures.
 
-The simulator labels its pictures for free, so the network is trained on rendered shapes (``diffdlo.image``) drawn
+The simulator labels its pictures for free, so the network is trained on rendered shapes (``diffdlo.tasks.image``) drawn
 from the env's own distributions: settled random start shapes (thesis sigma), the shapes that moves make of them,
 the named straight targets and smooth random curves, each turned and placed anywhere in the view. A picture must
 carry the end marker (env option ``mark_end=True``): without it a rope and its reversal draw the same picture.
@@ -35,9 +35,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from .. import image as rimage
-from ..params import CableParams, load_params
-from ..shapes import random_curve, random_shape
+from ..tasks import image as rimage
+from ..planar.params import CableParams, load_params
+from ..planar.shapes import random_curve, random_shape
 
 CHECKPOINT = "perception.pt"
 FORMAT = "diffdlo-perception-1"
@@ -57,7 +57,7 @@ def ink(images: torch.Tensor) -> torch.Tensor:
 
 def draw(points: torch.Tensor, size: int, view_size: float, rope: bool = True,
          board: torch.Tensor | None = None) -> torch.Tensor:
-    """(B, N, 2) curves -> (B, S, S, 3) float pictures in [0, 255] as ``diffdlo.task.observe`` draws them with the
+    """(B, N, 2) curves -> (B, S, S, 3) float pictures in [0, 255] as ``diffdlo.tasks.task.observe`` draws them with the
     end marker (before rounding to uint8): differentiable with respect to ``points``. ``board``: (B, S, S) coverage
     of a route's pegs (``board_coverage``), drawn grey under the curve as the env draws it; None: no pegs."""
     line = rimage.ROPE_COLOR if rope else rimage.TARGET_COLOR
@@ -75,7 +75,7 @@ def draw(points: torch.Tensor, size: int, view_size: float, rope: bool = True,
 def board_coverage(pegs: torch.Tensor | None, size: int, view_size: float,
                    batch: int | None = None) -> torch.Tensor | None:
     """(B, K, 3) pegs (x, y, radius) [m], rows of radius 0 empty (the env's padded ``pegs``) -> (B, S, S) their
-    coverage as the env draws them (``diffdlo.image.discs``); None stays None. ``batch``: the pictures' count, which
+    coverage as the env draws them (``diffdlo.tasks.image.discs``); None stays None. ``batch``: the pictures' count, which
     the pegs must match (a PerceptionError names a mismatch)."""
     if pegs is None:
         return None
@@ -456,7 +456,7 @@ def train(out: Path, cfg: TrainConfig, p: CableParams, view_size: float = DEFAUL
     from tqdm import tqdm
 
     from ..utils.files import write_json_atomic, write_text_atomic
-    from ..simulator import Simulator
+    from ..planar.simulator import Simulator
 
     t0 = time.perf_counter()
     torch.manual_seed(cfg.seed)
@@ -563,7 +563,7 @@ def plot(perception: Perception, test: dict[str, torch.Tensor], path: Path, coun
 # ====================================================================== command line
 def main(argv: list[str] | None = None) -> int:
     from ..utils.files import check_fresh_out, out_lock
-    from ..params import ParamsError
+    from ..planar.params import ParamsError
 
     d = TrainConfig()
     ap = argparse.ArgumentParser(prog="python -m diffdlo.perception", description=__doc__.split("\n\n")[0])

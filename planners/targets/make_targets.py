@@ -16,7 +16,7 @@ import torch
 import yaml
 
 import diffdlo
-from diffdlo.shapes import polyline_from_angles
+from diffdlo.planar.shapes import polyline_from_angles
 
 here = Path(__file__).parent
 p = diffdlo.load_params("cable")

@@ -86,5 +86,5 @@ def pid_force(error: torch.Tensor, integral: torch.Tensor, ref_velocity: torch.T
     up linearly over ff_len (the thesis's force profile) to avoid an impulsive start.
     """
     ramp = min(1.0, t / p.ff_len) if p.ff_len > 0 else 1.0
-    k_d = p.k_d if k_d is None else per_rope(k_d, 2)          # per-rope damping (diffdlo.physics) if given
+    k_d = p.k_d if k_d is None else per_rope(k_d, 2)          # per-rope damping (diffdlo.planar.physics) if given
     return p.k_p * error + p.k_i * integral + (ramp * p.k_ff * k_d) * ref_velocity

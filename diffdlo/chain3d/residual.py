@@ -66,11 +66,11 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from . import chain3d, fit
-from .chain3d import ChainDivergedError, ChainParams
+from . import chain as chain3d, fit
+from .chain import ChainDivergedError, ChainParams
 from .fit import FIT_NAMES, CableModel
 
-FORMAT = "diffdlo.real.residual/1"
+FORMAT = "diffdlo.chain3d.residual/1"
 N_VECTOR_FEATURES = 6          # v, link back, link forward, their rates, position from the held centroid
 N_SPAN_FEATURES = 2            # the chain's span: horizontal distance and height difference of its end nodes
 _EPS_FRAME = 1e-3              # [m] horizontal span under which the chain's frame fades (no NaN when ends align)

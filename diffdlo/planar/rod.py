@@ -1,7 +1,7 @@
 """The cable model's parameters as an elastic rod's, and back (docs/SIMULATOR.md "The physics against the literature").
 
 The model (the thesis "Robotic Manipulation of Deformable Linear Objects: A Model-Free Control Using Reinforcement
-Learning Algorithms", Table 2.1; diffdlo/forces.py) has N nodes joined by N - 1 links of rest length
+Learning Algorithms", Table 2.1; diffdlo/planar/forces.py) has N nodes joined by N - 1 links of rest length
 l0 = length / (N - 1), the energy
 
     E = sum_links k_s (l - l0)^2 / 2 + sum_interior k_b beta_i^2 / 2,

@@ -1,4 +1,4 @@
-"""The fused C++ CPU kernel (diffdlo/backends/csrc/cable.cpp): build on first use, call through ctypes, autograd wrapper.
+"""The fused C++ CPU kernel (diffdlo/planar/backends/csrc/cable.cpp): build on first use, call through ctypes, autograd wrapper.
 
 The kernel is plain C++ with a C ABI, so building it needs only a C++ compiler (g++ or c++ on PATH, or $CXX) and
 takes a few seconds; nothing from PyTorch's headers is compiled. The source is package data (read through
@@ -7,13 +7,13 @@ takes a few seconds; nothing from PyTorch's headers is compiled. The source is p
 ``available()`` is False, the reason is in ``unavailable_reason()``, one ``KernelUnavailableWarning`` says so, and
 the simulator uses its pure-torch path.
 
-Per-rope physics (diffdlo.physics.Physics) goes in as a (B, 4) float64 tensor of k_s, k_b, 1 / node_mass and the
+Per-rope physics (diffdlo.planar.physics.Physics) goes in as a (B, 4) float64 tensor of k_s, k_b, 1 / node_mass and the
 implicit damping factor 1 / (1 + dt k_d / node_mass) (``physics_columns``); the adjoint returns the gradient w.r.t.
 those four numbers and autograd carries it on to k_d and mass. Frames (positions every ``record_every`` substeps)
 come back per rope up to its own stop (``assemble_frames`` makes the eager path's (F, B, N, 2) of them), and their
 gradients are injected at their substeps in the backward sweep.
 
-Pegs (diffdlo/contact.py) go in as a contiguous (B, K, 3) tensor in the state's dtype (None: no contact, the kernel
+Pegs (diffdlo/planar/contact.py) go in as a contiguous (B, K, 3) tensor in the state's dtype (None: no contact, the kernel
 then runs exactly its code without them) and the pin as a (B,) int64 tensor (-1: none; None: no pins); the contact
 parameters rope_radius, contact_stiffness and contact_width are always in ``Setup.fp``. The pegs get no gradient.
 """
@@ -248,7 +248,7 @@ def backward(setup: Setup, pos, vel, node, delta, speed, n_grasp, grad_pos_out, 
 
 def deepest_overlap(pos: torch.Tensor, pegs: torch.Tensor, rope_radius: float) -> torch.Tensor:
     """(B,) the deepest overlap [m] of each rope's (B, N, 2) links with its pegs (B, K, 3), as
-    diffdlo.contact.depth computes it (CPU tensors of one dtype)."""
+    diffdlo.planar.contact.depth computes it (CPU tensors of one dtype)."""
     lib = _load()
     pos, pegs = _contig(pos, pegs.to(pos.dtype))
     out = pos.new_empty(pos.shape[0])

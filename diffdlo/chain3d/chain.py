@@ -1,5 +1,5 @@
 """The cable as a chain in 3-D under gravity: masses, stretching springs, discrete bending, viscous damping, a floor,
-and nodes held on prescribed paths (the robots' grippers of DEFORM's recordings, diffdlo/real/deform.py).
+and nodes held on prescribed paths (the robots' grippers of DEFORM's recordings, diffdlo/chain3d/deform.py).
 
 Pure batched functions of tensors (x, v: (B, N, 3) [m], [m/s], z up); device and dtype follow ``x``; every
 parameter of ``ChainParams`` may be a tensor requiring gradients, and whole rollouts are differentiable.
@@ -18,7 +18,7 @@ between the links at node i, so kb_i / D_i is the curvature kappa and E_b is the
 on the Voronoi lengths (to O(theta^2); for a cable without twist and with a round section, DER's bending energy
 exactly). EI [N m^2] is the rod's bending stiffness, independent of the discretisation. Unlike a 1 - cos(theta)
 energy, it grows without bound as a node folds back on itself (theta -> pi), as a real cable resists folding.
-H is the C2 "smoothed half square" of diffdlo/contact.py with width ``floor_width``: the floor's push k_f H'(z)
+H is the C2 "smoothed half square" of diffdlo/planar/contact.py with width ``floor_width``: the floor's push k_f H'(z)
 sets in smoothly over the first ``floor_width`` of penetration and is a linear spring past it. It is frictionless;
 a normal dashpot (``floor_damping``, below) makes an impact inelastic.
 
@@ -32,7 +32,7 @@ Damping, a Rayleigh dissipation R (force -dR/dv, power lost 2R):
     bending       R_b = sum_i eta_B / (2 D_i) (d|kb_i|/dt)^2       eta_B [N m^2 s]: moment EI kappa + eta_B dkappa/dt
     floor         R_f = sum_j c_f H''(z_f - z_j) (dz_j/dt)^2 / 2     c_f [N s/m] per node, on as the push sets in
 
-The drag is the planar model's damping (diffdlo/integrate.py: absolute, treated implicitly); in air it stands for
+The drag is the planar model's damping (diffdlo/planar/integrate.py: absolute, treated implicitly); in air it stands for
 the air's drag and for whatever else the model leaves out. The planar model needs nothing more because its table
 drag dominates; a cable swinging in air is damped mostly inside itself, so the two internal (Kelvin-Voigt) terms
 damp the rates of the same strains the energy stores. They vanish for every rigid motion of the chain (tested):
@@ -62,7 +62,7 @@ from typing import Any, Callable, NamedTuple
 
 import torch
 
-from ..contact import penalty
+from ..planar.contact import penalty
 
 FRAME_DT = 0.01            # [s] between recorded frames: DEFORM's 100 Hz
 DIVERGENCE_RADIUS = 100.0  # [m] a node farther than this from the origin has diverged
@@ -472,7 +472,7 @@ def rollout(x0: torch.Tensor, v0: torch.Tensor | None, held_mask: torch.Tensor |
     linearly (velocity (P_{k+1} - P_k) / frame_dt) and sit exactly on P_{k+1} at its end; their entries of x0 and
     v0 are replaced by the path's (the velocity of its first frame). With nothing held, ``frames`` gives T.
     ``substeps`` per frame of ``frame_dt`` [s]. ``accel(x, v) -> (B, N, 3)`` [m/s^2]: an extra acceleration (e.g. a
-    learned correction, diffdlo.real.residual), evaluated once per frame from the state at the frame's start (the
+    learned correction, diffdlo.chain3d.residual), evaluated once per frame from the state at the frame's start (the
     held nodes' velocity that of their path over the frame) and held over its substeps, added in the velocity update.
     Differentiable with respect to x0, v0, held_path, every tensor of ``params`` (and accel's own parameters).
     Raises ChainError for bad inputs and ChainDivergedError, naming the frame, for a state that becomes non-finite

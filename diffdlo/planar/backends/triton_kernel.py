@@ -1,5 +1,5 @@
 """The fused Triton path of ``Simulator.move`` / ``integrate`` (backend "triton"; the GPU counterpart of the C++
-CPU kernel diffdlo/backends/csrc/cable.cpp, wrapper diffdlo/backends/kernel.py).
+CPU kernel diffdlo/planar/backends/csrc/cable.cpp, wrapper diffdlo/planar/backends/kernel.py).
 
 Forward: ONE kernel launch per move. Each Triton program takes a block of ``BLOCK_ROPES`` ropes and keeps their
 whole chain state (positions and velocities, ``[BLOCK_ROPES, N_PAD]`` tensors, N_PAD the node count rounded up to
@@ -137,7 +137,7 @@ if triton is not None:
         """Substep k of a move for the ropes and nodes in ``live`` (the others keep their state): internal forces,
         semi-implicit Euler with implicit damping, then the grasped node (``on_path``) put on its reference path,
         or, on the ropes in ``blend`` (their last drag substep, phi < 1), the share ``phi`` of the way from its free
-        step to the path (control.last_substep_fraction). Mirrors diffdlo/forces.py, integrate.py and
+        step to the path (control.last_substep_fraction). Mirrors diffdlo/planar/forces.py, integrate.py and
         control.reference (and cable.cpp's substep). Also returns the grasped node's free x, y, vx, vy per rope."""
         ex, ey, len2, beta = _links(x, y, link, inner, nxt, prv)
         beta_end = tl.where(link, tl.gather(beta, nxt, axis=1), 0.0)                     # angle at node j + 1

@@ -1,13 +1,13 @@
-"""Writes the fixed routing layouts (diffdlo/layouts/*.yaml) for the 20-node, 0.5 m rope of params/cable.yaml, or
+"""Writes the fixed routing layouts (diffdlo/tasks/layouts/*.yaml) for the 20-node, 0.5 m rope of params/cable.yaml, or
 draws them (each with the start of episode 0 beside it, and four random boards of target "route"):
 
-    python -m diffdlo.layouts.make_layouts
-    python -m diffdlo.layouts.make_layouts --figure docs/figures/layouts.png
+    python -m diffdlo.tasks.layouts.make_layouts
+    python -m diffdlo.tasks.layouts.make_layouts --figure docs/figures/layouts.png
 
 Each route is a polyline of the rope's links built from its turning angles (degrees per interior node, node 1 to
 N - 2), centred on the board; each peg sits against the inside (the route wraps it) or the outside (the route
-passes it) of the route's turn at one node (diffdlo.routing.peg_against). The ones a learner trains on, and the
-held-out ones (diffdlo.routing.HELD_OUT_LAYOUTS), which no learner may see in training.
+passes it) of the route's turn at one node (diffdlo.tasks.routing.peg_against). The ones a learner trains on, and the
+held-out ones (diffdlo.tasks.routing.HELD_OUT_LAYOUTS), which no learner may see in training.
 """
 from __future__ import annotations
 
@@ -19,9 +19,9 @@ from pathlib import Path
 import torch
 import yaml
 
-from diffdlo.params import load_params
-from diffdlo.routing import HELD_OUT_LAYOUTS, Layout, peg_against, random_layout, start_beside
-from diffdlo.shapes import polyline_from_angles
+from diffdlo.planar.params import load_params
+from diffdlo.tasks.routing import HELD_OUT_LAYOUTS, Layout, peg_against, random_layout, start_beside
+from diffdlo.planar.shapes import polyline_from_angles
 from diffdlo.utils.files import check_fresh_file
 
 HERE = Path(__file__).resolve().parent
@@ -53,7 +53,7 @@ def build(name: str) -> Layout:
 
 def figure(path: Path) -> Path:
     """The fixed layouts and four random boards, each route dashed among its pegs with a start beside it."""
-    from diffdlo import render
+    from diffdlo.utils import render
     p = load_params("cable")
     layouts = [build(name) for name in LAYOUTS]
     gen = torch.Generator().manual_seed(0)
@@ -67,7 +67,7 @@ def figure(path: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m diffdlo.layouts.make_layouts", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m diffdlo.tasks.layouts.make_layouts", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--figure", type=Path, help="draw the layouts to this PNG instead of writing them")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --figure")
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     for name in LAYOUTS:
         layout = build(name)
-        text = (f"# routing layout {name!r} for the 20-node, 0.5 m rope (python -m diffdlo.layouts.make_layouts)\n"
+        text = (f"# routing layout {name!r} for the 20-node, 0.5 m rope (python -m diffdlo.tasks.layouts.make_layouts)\n"
                 + yaml.safe_dump({"pegs": [[round(v, 6) for v in row] for row in layout.pegs.tolist()],
                                   "route": [[round(v, 6) for v in row] for row in layout.route.tolist()]},
                                  default_flow_style=None, sort_keys=False))

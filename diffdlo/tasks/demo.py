@@ -1,4 +1,4 @@
-"""A short simulation that writes pictures of a rope being dragged: python -m diffdlo.demo --out runs/demo"""
+"""A short simulation that writes pictures of a rope being dragged: python -m diffdlo.tasks.demo --out runs/demo"""
 from __future__ import annotations
 
 import argparse
@@ -8,8 +8,8 @@ from pathlib import Path
 import torch
 
 import diffdlo
-from diffdlo import render
-from diffdlo.task import greedy_drags
+from diffdlo.utils import render
+from diffdlo.tasks.task import greedy_drags
 
 
 def main(argv: list[str] | None = None) -> None:

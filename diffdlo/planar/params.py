@@ -17,10 +17,10 @@ def _find_params_dir() -> Path:
     so an installed package finds them wherever it lives. A source checkout (an editable install, or the repository
     on ``sys.path``) has no such folder and reads ``params/`` at the repository root, the files the README names.
     """
-    packaged = resources.files(__package__) / "_params"
+    packaged = resources.files("diffdlo") / "_params"
     if packaged.is_dir():
         return Path(packaged)
-    return Path(__file__).resolve().parent.parent / "params"
+    return Path(__file__).resolve().parents[2] / "params"
 
 
 PARAMS_DIR = _find_params_dir()
@@ -89,7 +89,7 @@ class CableParams:
     settle_threshold: float
     settle_check_every: int
     settle_max_substeps: int
-    # contact with pegs (diffdlo/contact.py)
+    # contact with pegs (diffdlo/planar/contact.py)
     rope_radius: float
     contact_stiffness: float
     contact_width: float

@@ -6,7 +6,7 @@ passing each peg on a given side. Batched functions of tensors; device and dtype
 - ``sides_kept`` and ``route_errors``: the two halves of success (every peg on the route's side, the mean node
   error on the board under the tolerance; absolute positions: the pegs fix the route on the board);
 - ``Layout``: pegs and a route, checked (no overlapping pegs, a route of the rope's length clear of every peg);
-  ``random_layout`` draws one (2-4 pegs, some wrapped); ``load_layout`` reads the fixed ones (diffdlo/layouts/);
+  ``random_layout`` draws one (2-4 pegs, some wrapped); ``load_layout`` reads the fixed ones (diffdlo/tasks/layouts/);
 - ``start_beside``: a start shape off the route and clear of the pegs.
 """
 from __future__ import annotations
@@ -20,9 +20,9 @@ import numpy as np
 import torch
 import yaml
 
-from . import contact
-from .params import CableParams
-from .shapes import TargetError, check_target, random_curve, random_shape
+from ..planar import contact
+from ..planar.params import CableParams
+from ..planar.shapes import TargetError, check_target, random_curve, random_shape
 
 LAYOUTS_DIR = Path(str(resources.files(__package__) / "layouts"))
 # The fixed layouts no learner trains on (the comparison's held-out boards); the others are for training and tests.
@@ -152,7 +152,7 @@ class Layout:
 
 
 def layout_names() -> list[str]:
-    """The fixed layouts shipped in diffdlo/layouts/ (``load_layout`` by name)."""
+    """The fixed layouts shipped in diffdlo/tasks/layouts/ (``load_layout`` by name)."""
     return sorted(f.stem for f in LAYOUTS_DIR.glob("*.yaml"))
 
 

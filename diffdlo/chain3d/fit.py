@@ -33,8 +33,8 @@ from typing import Any, Mapping, Sequence
 import torch
 from tqdm import tqdm
 
-from . import chain3d
-from .chain3d import ChainDivergedError, ChainParams
+from . import chain as chain3d
+from .chain import ChainDivergedError, ChainParams
 from .deform import DT, HELD_MARKERS, MARKER_MASS
 
 FIT_NAMES = ("EI", "EA", "drag", "axial_damping", "bending_damping")

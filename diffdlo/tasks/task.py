@@ -5,12 +5,12 @@ call these functions rather than restating them:
 
 - targets: ``resolve_target`` (a name, an (N, 2) array, a .npy/.yaml file, a family drawn anew per episode, or a
   route among pegs: "route" drawn anew, "route:NAME" a fixed layout) and ``draw_target`` / ``draw_route`` (one
-  episode's target, or layout, from that episode's generator); the routing rules themselves are diffdlo/routing.py's;
+  episode's target, or layout, from that episode's generator); the routing rules themselves are diffdlo/tasks/routing.py's;
 - actions: ``decode_node`` / ``decode_drag`` / ``encode_node_action`` (the node action, eq 2.6),
   ``decode_pixel_node`` (the pixel action, eq 2.5), ``decode_action`` (either);
 - the greedy move (the node farthest from its place, dragged towards it): ``greedy_drags``;
 - rewards, success and episode end: ``step_outcome`` (its success test ``task_success``), by the env's options
-  (``diffdlo.envs.EnvOptions``; the rewards and the errors themselves are in diffdlo/rewards.py, eq 2.7-2.11);
+  (``diffdlo.envs.EnvOptions``; the rewards and the errors themselves are in diffdlo/tasks/rewards.py, eq 2.7-2.11);
 - observations: ``observation_space`` and ``observe``.
 
 A new target family, reward, action head or observation is an addition here.
@@ -27,9 +27,9 @@ from gymnasium import spaces
 
 from . import image as rimage
 from . import routing
-from .params import CableParams
+from ..planar.params import CableParams
 from .rewards import is_success, node_errors, orientation_error, reward as move_reward, within_tolerance
-from .shapes import CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape
+from ..planar.shapes import CURVE_MAX_TURN_DEG, TARGET_FAMILIES, TARGET_NAMES, TargetError, random_curve, target_shape
 
 
 OBS_TYPES = ("points", "distance", "image", "image_single", "perceived")
@@ -98,7 +98,7 @@ def draw_target(spec: str | torch.Tensor, rng: np.random.Generator, p: CablePara
                 curve_max_turn_deg: float = CURVE_MAX_TURN_DEG) -> tuple[torch.Tensor, str]:
     """One episode's target (N, 2) and its name, for a resolved spec. ``"random"``: one of the named straight
     targets (``named``: name -> (N, 2)), uniformly (the thesis's task); ``"random_curve"``: a smooth random curve
-    (diffdlo.shapes.random_curve); a fixed (N, 2) target: itself, named "custom" (or its name when it is one of
+    (diffdlo.planar.shapes.random_curve); a fixed (N, 2) target: itself, named "custom" (or its name when it is one of
     ``named``). Draws from ``rng`` (the episode's generator) only for a family."""
     if isinstance(spec, str) and spec == "random":
         name = TARGET_NAMES[int(rng.integers(len(TARGET_NAMES)))]

@@ -105,9 +105,9 @@ class Simulator:
     """Batched planar mass-spring cable on ``device`` in ``dtype``. docs/SIMULATOR.md "Use the simulator" shows the API.
 
     ``backend``: "torch" is the eager reference path (every controller, any device); "kernel" is the fused C++
-    CPU kernel (kinematic controller; diffdlo/backends/csrc/cable.cpp) with a hand-written adjoint, per-rope physics and
+    CPU kernel (kinematic controller; diffdlo/planar/backends/csrc/cable.cpp) with a hand-written adjoint, per-rope physics and
     frame recording included; "auto" (default) uses the kernel where it applies (CPU tensors, kinematic drag) and
-    the torch path elsewhere. "triton" is the fused Triton kernel (diffdlo/backends/triton_kernel.py: one launch per move and
+    the torch path elsewhere. "triton" is the fused Triton kernel (diffdlo/planar/backends/triton_kernel.py: one launch per move and
     one for its adjoint, kinematic controller, per-rope physics and frame recording included) on CUDA tensors, or
     on CPU tensors in Triton's interpreter (TRITON_INTERPRET=1); "auto" picks it on CUDA where triton imports and
     the controller is kinematic.
@@ -257,7 +257,7 @@ class Simulator:
         return internal_forces(pos, p.rest_length, p.k_s, p.k_b)
 
     def contact_energy(self, pos: torch.Tensor, pegs: torch.Tensor) -> torch.Tensor:
-        """(B, N, 2), pegs (K, 3) or (B, K, 3) -> (B,) contact energy with the pegs [J] (diffdlo/contact.py)."""
+        """(B, N, 2), pegs (K, 3) or (B, K, 3) -> (B,) contact energy with the pegs [J] (diffdlo/planar/contact.py)."""
         p = self.params
         pegs = contact.check_pegs(pegs, pos.shape[0], pos.dtype, pos.device)
         return contact.energy(pos, pegs, p.rope_radius, p.contact_stiffness, p.contact_width)
@@ -291,7 +291,7 @@ class Simulator:
     def integrate(self, pos: torch.Tensor, vel: torch.Tensor | None, n_substeps: int,
                   physics: Physics | None = None, pegs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Free evolution (no grasp) for n_substeps substeps of dt. Returns (pos, vel). ``physics``: per-rope
-        parameters (diffdlo.physics), differentiable (in the kernel too, where it applies); ``pegs``: (K, 3) or
+        parameters (diffdlo.planar.physics), differentiable (in the kernel too, where it applies); ``pegs``: (K, 3) or
         (B, K, 3) of (x, y, radius) [m] on the table."""
         self._check_state("pos", pos)
         if physics is not None:
@@ -335,11 +335,11 @@ class Simulator:
         substeps after its release, capped at ``settle_max_substeps``) and is frozen once settled, so batch
         members never influence each other. Differentiable w.r.t. ``pos``, ``delta`` (and ``vel``).
         With ``return_info`` returns ``(pos, MoveInfo)``; ``record_every > 0`` also records frames. ``physics``:
-        per-rope k_s, k_b, k_d and mass (diffdlo.physics) in place of the params' numbers, differentiable (in the
+        per-rope k_s, k_b, k_d and mass (diffdlo.planar.physics) in place of the params' numbers, differentiable (in the
         kernel too, where it applies). ``differentiable_frames``: the recorded frames keep their graph (a loss over
         a trajectory, as the calibration fits), instead of detached copies for pictures.
 
-        ``pegs``: (K, 3) or (B, K, 3) fixed posts (x, y, radius) [m] that push the rope (diffdlo/contact.py); the
+        ``pegs``: (K, 3) or (B, K, 3) fixed posts (x, y, radius) [m] that push the rope (diffdlo/planar/contact.py); the
         grasped node and its two links are lifted over them during the drag, the rest of the rope stays on the
         table. ``pin``: (B,) a second node per rope held where it lies during the drag and released with the grasp
         (-1: no pin). Without pegs and pins a move is what it always was, bit for bit.

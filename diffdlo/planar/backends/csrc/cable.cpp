@@ -1,21 +1,21 @@
 // Fused CPU kernel of diffdlo's move (kinematic grasp -> drag -> release -> settle) and free evolution, with a
 // hand-written adjoint. Plain C++ with a C ABI (called through ctypes on tensor data pointers); the pure-torch
-// path in diffdlo/simulator.py is the reference and the test oracle, and this file mirrors it step by step:
-//   forces   : diffdlo/forces.py internal_forces (dE/de per link, scattered to nodes)
-//   substep  : diffdlo/integrate.py semi_implicit_step (implicit damping)
-//   grasp    : diffdlo/control.py reference (straight path at constant speed; node overwritten while dragging)
+// path in diffdlo/planar/simulator.py is the reference and the test oracle, and this file mirrors it step by step:
+//   forces   : diffdlo/planar/forces.py internal_forces (dE/de per link, scattered to nodes)
+//   substep  : diffdlo/planar/integrate.py semi_implicit_step (implicit damping)
+//   grasp    : diffdlo/planar/control.py reference (straight path at constant speed; node overwritten while dragging)
 //   settle   : Simulator.move (speed checked every check_every substeps after release, capped)
 // Each rope is independent, so ropes run in parallel (a few std::threads taking ropes from an atomic counter;
 // not OpenMP, whose spinning idle threads would fight PyTorch's own OpenMP runtime for the cores) and each rope
 // stops at its own substep.
 // The backward recomputes one rope's trajectory inside its own thread, then runs the adjoint with an analytic
 // Hessian-vector product of the energy: memory is O(threads x one trajectory), whatever B or the move count.
-// Optional per-rope physics (diffdlo/physics.py): phys[] holds k_s, k_b, 1/node_mass and the damping factor
+// Optional per-rope physics (diffdlo/planar/physics.py): phys[] holds k_s, k_b, 1/node_mass and the damping factor
 // 1/(1 + h k_d / m) of each rope (null: the scalars of fp[] for every rope); the adjoint then also returns the
 // gradients w.r.t. those four numbers (the chain rule to k_d and mass is left to autograd in diffdlo/kernel.py).
 // Optional frames: the positions at substeps 0, E, 2E, ... (E = record_every) of each rope, up to its own stop,
 // into frames[b][j] (frame_cap slots per rope); the adjoint injects their incoming gradients at those substeps.
-// Optional pegs and pin (diffdlo/contact.py, Simulator._move_eager): pegs[b][j] = (x, y, R) of K fixed posts per
+// Optional pegs and pin (diffdlo/planar/contact.py, Simulator._move_eager): pegs[b][j] = (x, y, R) of K fixed posts per
 // rope add the contact forces of every link on the table to the internal forces (the two links at the grasped node
 // are lifted during the drag), and its adjoint adds the contact energy's Hessian to the Hessian-vector product;
 // pin[b] (-1: none) is a second node held at its start position with velocity 0 while the rope is dragged, and
@@ -223,7 +223,7 @@ inline void hvp(const Scalars& s, int64_t n, const T* x, const T* u, T* out, Wor
 }
 
 // ------------------------------------------------------------------------------------------------------------
-// Contact with pegs (diffdlo/contact.py). Link k (a = x_k, b = x_{k+1}, e = b - a) meets peg (c, R) at its point
+// Contact with pegs (diffdlo/planar/contact.py). Link k (a = x_k, b = x_{k+1}, e = b - a) meets peg (c, R) at its point
 // q = a + t e closest to c, t = clamp(s, 0, 1), s = (c - a).e / e.e, overlapping it by z = R + r - d, d = |q - c|;
 // the energy k_c H(z) (H the smoothed half square of width w) pushes a by k_c H'(z) (1 - t) n and b by
 // k_c H'(z) t n, n = (q - c) / d. The links lift - 1 and lift (at the grasped node during the drag; lift = -1:

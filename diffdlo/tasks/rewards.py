@@ -82,7 +82,7 @@ def worst_node_error(pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def within_tolerance(mean_error, worst_error, tol: float, worst_tol: float | None = None):
     """The task's success test on errors already measured: mean_error < tol and, when ``worst_tol`` is given,
     worst_error < worst_tol. Tensors (B,) give a bool tensor, floats a bool; ``worst_error`` is not read when
-    ``worst_tol`` is None (it may be None then). The env (``diffdlo.task``) and the comparison's tolerance helper
+    ``worst_tol`` is None (it may be None then). The env (``diffdlo.tasks.task``) and the comparison's tolerance helper
     (``benchmarks.compare.stats.success_move``) both test with it."""
     ok = mean_error < tol
     if worst_tol is not None:
@@ -108,7 +108,7 @@ def is_success(pos: torch.Tensor, target: torch.Tensor, tol: float = 0.01,
 
 
 def reward_route_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """(B,) ours, for routes (diffdlo/routing.py): 100 x (mean node distance to the target before - after) [cm], on
+    """(B,) ours, for routes (diffdlo/tasks/routing.py): 100 x (mean node distance to the target before - after) [cm], on
     the board (no centroid alignment: the pegs fix where the route lies). eq 2.8's delta_gain per node in cm."""
     return 100.0 * ((prev_pos - target).norm(dim=-1).mean(-1) - (pos - target).norm(dim=-1).mean(-1))
 
@@ -116,7 +116,7 @@ def reward_route_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.T
 def reward_route_side_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor,
                            pegs: torch.Tensor) -> torch.Tensor:
     """(B,) ours, for routes: 100 x (route cost before - after) [cm], the route cost being the planners'
-    (``diffdlo.routing.route_cost``: the mean node distance on the board plus SIDE_COST = 5 cm per peg passed on the
+    (``diffdlo.tasks.routing.route_cost``: the mean node distance on the board plus SIDE_COST = 5 cm per peg passed on the
     wrong side). route_gain plus 5 for each peg a move brings to the route's side (minus 5 for each it takes off):
     a shaping of the success test's side condition by a potential (Ng et al. 1999), so a policy is paid for the
     side before it is within 1 cm."""
