@@ -17,6 +17,7 @@ from typing import Callable
 
 import torch
 
+from .common import run_cli
 from .objective import SimObjective
 
 
@@ -216,7 +217,6 @@ class CEMPlanner:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .common import run_cli
     return run_cli(CEMPlanner, "cem", __doc__, argv)
 
 

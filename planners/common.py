@@ -29,15 +29,17 @@ from typing import Any
 import torch
 from tqdm import tqdm
 
-from diffdlo.tasks import routing, task
-from diffdlo.utils.checks import check_interval
 from diffdlo.envs import BatchedShapeControl, EnvOptions
-from diffdlo.utils.signals import exit_code, stop_on_signals
-from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, shapes_record, write_json_atomic
 from diffdlo.planar.params import CableParams, ParamsError, load_params
 from diffdlo.planar.physics import PHYSICAL, physical_values, scaled_params   # what a scale may change
 from diffdlo.planar.shapes import TARGET_FAMILIES, TARGET_NAMES, TargetError
 from diffdlo.planar.simulator import Simulator
+from diffdlo.tasks import routing, task
+from diffdlo.utils.checks import check_interval
+from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, shapes_record, write_json_atomic
+from diffdlo.utils.signals import exit_code, stop_on_signals
+
+from .escape import StallEscape
 
 DEFAULT_MAX_STEPS = 15
 SAME_MOVES = ("n_nodes", "length", "action_scale", "max_disp")   # model and real rope must agree on these
@@ -79,10 +81,14 @@ def build_run(planner_cls, model: CableParams, real: CableParams, target_spec, *
     (ropes that disagree on SAME_MOVES), TargetError, or ValueError/RuntimeError (the env's options, the device)."""
     check_same_moves(model, real)
     route = task.is_route(target_spec)
+    # a board of any size: the env's peg slots fit the layout (nothing in planning needs the learners' fixed count)
+    layout = task.resolve_target(target_spec, model) if route else None
+    slots = {"max_pegs": max(EnvOptions().max_pegs, len(layout.pegs))} if isinstance(layout, routing.Layout) else {}
     task_options = EnvOptions(target="route" if route else "horizontal", max_steps=max_steps, success_tol=success_tol,
                               success_worst_tol=success_worst_tol, params=real,
                               reward="route_gain" if route else "position_orientation",
-                              action_type="node_pin" if options.get("pin") else "node", route_start=route_start)
+                              action_type="node_pin" if options.get("pin") else "node", route_start=route_start,
+                              **slots)
     env = BatchedShapeControl(1, task_options, device=device)
     target = task.resolve_target(target_spec, model, env.device, env.dtype)
     env.set_target(target)
@@ -299,7 +305,6 @@ def run_cli(planner_cls, name: str, doc: str | None, argv: list[str] | None = No
             parser.error(f"--perception: {exc}")
     escape = None
     if args.escape:
-        from .escape import StallEscape
         escape = StallEscape(planner.sim, args.escape, pin=bool(options.get("pin")))
     label = task.target_label(args.target)
     out = Path(args.out or f"runs/{name}-{label}")

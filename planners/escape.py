@@ -1,6 +1,7 @@
 """A way out of the planners' local minima: after ``patience`` moves that brought the rope's best error down by
-under ``min_gain``, take the greedy move (the node farthest from its place dragged towards it, planners/greedy.py)
-until the rope is ``min_gain`` below its best error before the stall, then hand back to the planner.
+under ``min_gain``, take the greedy move (the node farthest from its place dragged towards it: the greedy planner's
+``diffdlo.tasks.task.greedy_action``) until the rope is ``min_gain`` below its best error before the stall, then
+hand back to the planner.
 
 Why: on a route a one-move planner can stall in a local minimum of its cost (the rope caught behind a peg, every
 single move that frees it raising the error first), while greedy, blind to the cost, walks through it; the grid's
@@ -12,9 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from diffdlo.tasks.task import greedy_drags
-
-from .greedy import GreedyPlanner
+from diffdlo.tasks.task import greedy_action, greedy_drags
 
 
 def stalled(errors: list[float], window: int, min_gain: float) -> bool:
@@ -28,7 +27,7 @@ class StallEscape:
         if patience < 1:
             raise ValueError(f"--escape must be >= 1 to escape (0: off), got {patience}")
         self.patience, self.min_gain = int(patience), float(min_gain)
-        self.greedy = GreedyPlanner(sim, pin=int(pin))
+        self.p, self.pin = sim.params, bool(pin)
         self.reset()
 
     def reset(self) -> None:
@@ -38,7 +37,7 @@ class StallEscape:
 
     def plan(self, pos: torch.Tensor, target: torch.Tensor, pegs: torch.Tensor | None = None) -> torch.Tensor | None:
         """The greedy action while escaping a stall, else None (the planner plans)."""
-        _, dist = greedy_drags(pos, target, self.greedy.p.max_disp, align=pegs is None)
+        _, dist = greedy_drags(pos, target, self.p.max_disp, align=pegs is None)
         error = float(dist.mean())
         self.errors.append(error)
         if self.escaping_below is not None and error < self.escaping_below:
@@ -49,4 +48,4 @@ class StallEscape:
         if self.escaping_below is None:
             return None
         self.moves += 1
-        return self.greedy.plan(pos, target, pegs)
+        return greedy_action(pos, target, self.p, self.pin, align=pegs is None)

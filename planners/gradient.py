@@ -26,6 +26,7 @@ import torch
 
 from diffdlo.tasks.task import encode_node_action, encode_pin, greedy_drags
 
+from .common import run_cli
 from .objective import SimObjective
 
 
@@ -128,7 +129,6 @@ class GradientPlanner:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .common import run_cli
     return run_cli(GradientPlanner, "gradient", __doc__, argv)
 
 

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import torch
 
-from diffdlo.tasks.task import encode_node_action, encode_pin, greedy_drags
+from diffdlo.tasks.task import greedy_action
+
+from .common import run_cli
 
 
 class GreedyPlanner:
@@ -24,21 +26,13 @@ class GreedyPlanner:
         pass
 
     def plan(self, pos: torch.Tensor, target: torch.Tensor, pegs: torch.Tensor | None = None) -> torch.Tensor:
-        drags, dist = greedy_drags(pos, target, self.p.max_disp, align=pegs is None)
-        node = dist.argmax()
-        action = encode_node_action(node, drags[node], self.p.n_nodes, self.p.action_scale)
-        if not self.pin:
-            return action
-        far = (torch.arange(self.p.n_nodes) - node).abs() >= 2
-        held = torch.where(far, dist, torch.full_like(dist, float("inf"))).argmin()
-        return torch.cat([action, encode_pin(held, self.p.n_nodes, action.dtype)[None]])
+        return greedy_action(pos, target, self.p, self.pin, align=pegs is None)
 
     # the command line's options (planners/common.py): constructor argument -> (type, default, allowed, help)
     OPTIONS = {"pin": (int, 0, "[0, 1]", "1: a second gripper holds the best-placed node (node_pin actions)")}
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .common import run_cli
     return run_cli(GreedyPlanner, "greedy", __doc__, argv)
 
 

@@ -104,6 +104,26 @@ def test_a_route_episode_records_its_board_and_sides(tmp_path, capsys):
     assert results["episodes"][0]["pegs"] == ep["pegs"] and (out / "shapes.png").is_file()
 
 
+def test_the_planners_take_a_board_of_any_size(tmp_path):
+    """A layout of 5 pegs (the learners' envs keep 4 slots): every planner's run plans and records all five."""
+    import yaml
+    p = route_env(1).params
+    layout = routing.random_layout(p, torch.Generator().manual_seed(0), pegs=(5, 5), radius=(0.006, 0.01),
+                                   max_turn_deg=25.0)
+    path = tmp_path / "five.yaml"
+    path.write_text(yaml.safe_dump({"pegs": layout.pegs.tolist(), "route": layout.route.tolist()}))
+    for planner_cls, options in ((GreedyPlanner, {"pin": 1}), (CEMPlanner, {"candidates": 8, "elites": 2,
+                                                                          "iterations": 1, "horizon": 1})):
+        env, planner, target = build_run(planner_cls, p, p, f"route:{path}", max_steps=1, success_tol=None,
+                                         device="cpu", seed=0, options=options)
+        ep = run_episode(env, planner, seed=0, progress=False)
+        assert len(ep["pegs"]) == 5 and ep["steps"] == 1
+    out = tmp_path / "greedy"
+    assert greedy_mod.main(["--target", f"route:{path}", "--max-steps", "1", "--out", str(out), "--quiet",
+                            "--no-gif"]) == 0
+    assert len(json.loads((out / "results.json").read_text())["episodes"][0]["pegs"]) == 5
+
+
 def test_the_routing_study_runs_missing_cells_reads_done_ones_and_records(tmp_path, capsys):
     from benchmarks.studies import routing_planners as study
     record = tmp_path / "routing.json"

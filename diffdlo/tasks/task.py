@@ -198,6 +198,21 @@ def greedy_drags(pos: torch.Tensor, target: torch.Tensor, max_disp: float,
     return gap * (max_disp / dist.clamp_min(1e-12)).clamp(max=1.0).unsqueeze(-1), dist
 
 
+def greedy_action(pos: torch.Tensor, target: torch.Tensor, p: CableParams, pin: bool = False,
+                  align: bool = True) -> torch.Tensor:
+    """The greedy move of one rope (N, 2) as an env action: the node farthest from its place (``greedy_drags``)
+    dragged towards it, (3,) node action; with ``pin`` (4,) node_pin, a second gripper holding the node, two or more
+    links from the grasped one, that is nearest its place. The greedy planner's move and the planners' stall escape."""
+    drags, dist = greedy_drags(pos, target, p.max_disp, align=align)
+    node = dist.argmax()
+    action = encode_node_action(node, drags[node], p.n_nodes, p.action_scale)
+    if not pin:
+        return action
+    far = (torch.arange(p.n_nodes, device=pos.device) - node).abs() >= 2
+    held = torch.where(far, dist, torch.full_like(dist, float("inf"))).argmin()
+    return torch.cat([action, encode_pin(held, p.n_nodes, action.dtype).to(action.device)[None]])
+
+
 # ====================================================================== rewards, success, episode end
 def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torch.Tensor,
                  steps: torch.Tensor, pegs: torch.Tensor | None = None
