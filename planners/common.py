@@ -7,14 +7,15 @@ its first action in ``BatchedShapeControl`` and replans until success (shape_err
 ``--success-worst-tol``, worst_node_error < it: the env's test) or max_steps. The episode's record keeps the mean
 error ("errors") and the worst node's error ("worst_errors") after the reset and after every move.
 Episode i starts from ``env.reset(seed=seed + i)``; with ``--target random`` or ``random_curve`` (a family in
-diffdlo.planar.shapes.TARGET_FAMILIES) that reset also draws episode i's target, recorded under the episode in results.json.
-That is the learners' evaluation rule too (agents/common/evaluation.py: episode i of a one-rope or batched evaluation env
-reset with seed s is ``reset(seed=s + i)`` of one rope), so a planner and a learner evaluated with the same seed see
-the same start shapes and targets, episode by episode (tests/test_paired_episodes.py).
+diffdlo.planar.shapes.TARGET_FAMILIES) that reset also draws episode i's target, recorded under the episode in
+results.json. That is the learners' evaluation rule too (agents/common/evaluation.py: episode i of a one-rope or batched
+evaluation env reset with seed s is ``reset(seed=s + i)`` of one rope), so a planner and a learner evaluated with the
+same seed see the same start shapes and targets, episode by episode (tests/test_paired_episodes.py).
 
 Model mismatch: ``--params`` are the model's, the planner plans with a Simulator of those; ``--real-params`` and
 ``--real-scale`` give the "real" rope that the env moves and scores. The real rope must decode an action into the same
-move (n_nodes, length, action_scale, max_disp equal). ``build_run`` builds the pair (used by benchmarks/studies/mismatch.py).
+move (n_nodes, length, action_scale, max_disp equal). ``build_run`` builds the pair (used by
+benchmarks/studies/mismatch.py).
 """
 from __future__ import annotations
 

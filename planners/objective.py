@@ -3,8 +3,8 @@
 ``SimObjective(sim, start, target)(actions (B, H, 3)) -> (B,)`` rolls the B sequences out with ONE batched
 ``Simulator.move`` per horizon step and returns the ``shape_error`` [m] (centroid-aligned mean node distance, the
 metric that defines success in the env) after the last move. Actions are the env's node actions in [0, 1]^3, clipped
-to [0, 1] and decoded by the env's own rule (``diffdlo.tasks.task.decode_node_action``, eq 2.6), so a plan can be executed
-in the env as is. Planners only need ``objective(actions) -> costs``: the CEM optimizer is generic
+to [0, 1] and decoded by the env's own rule (``diffdlo.tasks.task.decode_node_action``, eq 2.6), so a plan can be
+executed in the env as is. Planners only need ``objective(actions) -> costs``: the CEM optimizer is generic
 and can later be given a learned latent model's objective instead (PlaNet).
 
 Why shape_error and not the env's default reward (eq 2.9-2.11, pairwise distances + end-to-end angle): the task's

@@ -1,5 +1,5 @@
-"""Pegs and the second gripper (diffdlo/planar/contact.py, Simulator.move(..., pegs, pin)): the contact forces are -grad of
-the contact energy, a move in contact is gradcheck-exact, no rope ends inside a peg, a rope dragged around a peg
+"""Pegs and the second gripper (diffdlo/planar/contact.py, Simulator.move(..., pegs, pin)): the contact forces are -grad
+of the contact energy, a move in contact is gradcheck-exact, no rope ends inside a peg, a rope dragged around a peg
 wraps and stays wrapped, a node released above a peg is pushed out along the peg's radius, momentum holds with
 contact off and energy is only lost to damping, and every bad input is refused naming the value."""
 import dataclasses

@@ -1,5 +1,5 @@
-"""The fused C++ kernel with pegs (diffdlo/planar/contact.py) and the pin, against the eager torch path (the oracle): the
-Hessian-vector product of the contact energy, positions, run statistics, frames and the gradients w.r.t. pos, vel,
+"""The fused C++ kernel with pegs (diffdlo/planar/contact.py) and the pin, against the eager torch path (the oracle):
+the Hessian-vector product of the contact energy, positions, run statistics, frames and the gradients w.r.t. pos, vel,
 delta and the per-rope physics, on the vectorized lane groups and the per-rope path alike; gradcheck; float32; and
 without pegs and pin the very code it ran before."""
 import dataclasses
@@ -318,7 +318,8 @@ def test_no_pegs_and_no_pin_run_the_plain_kernel(params):
     assert torch.equal(sim.integrate(pos, None, 50, pegs=empty)[0], sim.integrate(pos, None, 50)[0])
     clipped = diffdlo.planar.control.clip_drag(delta, p.max_disp)
     dist = clipped.norm(dim=-1)
-    args = (pos, None, node, clipped, diffdlo.planar.control.drag_speed(dist, p), diffdlo.planar.control.path_substeps(dist, p))
+    control = diffdlo.planar.control
+    args = (pos, None, node, clipped, control.drag_speed(dist, p), control.path_substeps(dist, p))
     setup = kernel.Setup(p, BATCH)
     base = kernel.forward(setup, *args)
     for pegs, pins in ((torch.zeros(BATCH, 0, 3, dtype=torch.float64), None), (None, torch.full_like(pin, -1))):

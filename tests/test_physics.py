@@ -1,5 +1,5 @@
-"""Moves differentiable with respect to the physical parameters (diffdlo.planar.physics): per-rope k_s, k_b, k_d and mass,
-checked with gradcheck in float64 against finite differences, and equal to the params' path when they agree."""
+"""Moves differentiable with respect to the physical parameters (diffdlo.planar.physics): per-rope k_s, k_b, k_d and
+mass, checked with gradcheck in float64 against finite differences, and equal to the params' path when they agree."""
 import dataclasses
 
 import pytest

@@ -1,4 +1,5 @@
-"""The task's rules (diffdlo/tasks/task.py), the env's one state object and its one autoreset, and the composed configs."""
+"""The task's rules (diffdlo/tasks/task.py), the env's one state object and its one autoreset, and the composed
+configs."""
 import dataclasses
 
 import numpy as np

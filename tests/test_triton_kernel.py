@@ -1,10 +1,11 @@
-"""The fused Triton kernel (backend "triton", diffdlo/planar/backends/triton_kernel.py) against the eager torch reference path.
+"""The fused Triton kernel (backend "triton", diffdlo/planar/backends/triton_kernel.py) against the eager torch
+reference path.
 
 Marked ``triton`` (kept out of the default run; .ci/run runs them after installing the [gpu] extra):
 ``TRITON_INTERPRET=1 python -m pytest -m triton`` runs the kernels (the move and its adjoint) in Triton's CPU
 interpreter; on a machine with CUDA the same tests run the compiled kernels on the GPU. The interpreter takes ~20-30
-ms per substep, so the params are cut to ~100-substep moves. The gradient problem is benchmarks/gradients/triton_gradients.py's,
-which prints the errors the test bounds.
+ms per substep, so the params are cut to ~100-substep moves. The gradient problem is
+benchmarks/gradients/triton_gradients.py's, which prints the errors the test bounds.
 """
 import dataclasses
 import os
@@ -208,7 +209,8 @@ def test_bad_inputs_name_the_problem(params):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert "ERR backend 'triton' is unavailable on cpu" in out.stdout and "TRITON_INTERPRET=1" in out.stdout, out
     # without triton importable
-    code = ("import sys\nsys.modules['triton'] = None\nimport diffdlo\nfrom diffdlo.planar.backends import triton_kernel\n"
+    code = ("import sys\nsys.modules['triton'] = None\nimport diffdlo\n"
+            "from diffdlo.planar.backends import triton_kernel\n"
             "assert not triton_kernel.available()\ntry:\n    diffdlo.Simulator(backend='triton')\n"
             "except RuntimeError as e:\n    print('ERR', e)\n"
             "print('AUTO', diffdlo.Simulator().backend, diffdlo.Simulator().engine == 'triton')\n")

@@ -15,9 +15,9 @@ policy trained on random curves needs to generalize.
 
 Among pegs (a route: the points observation carries "pegs") the error is measured on the board, so the difference is
 NOT centred (rope - route), and each peg slot adds four numbers: its centre relative to the rope's centroid and its
-radius (rope lengths), and its side gap, (the rope's winding round it - the route's) / 2 pi (``diffdlo.tasks.routing.winding``;
-about 0 on the route's side, about +-1 on the other): 4N + 2 + 4 K numbers, an empty slot all zeros. The side gap is
-the success test's own quantity, read from the observation (no privileged input).
+radius (rope lengths), and its side gap, (the rope's winding round it - the route's) / 2 pi
+(``diffdlo.tasks.routing.winding``; about 0 on the route's side, about +-1 on the other): 4N + 2 + 4 K numbers, an empty
+slot all zeros. The side gap is the success test's own quantity, read from the observation (no privileged input).
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ from diffdlo.tasks.routing import winding
 from diffdlo.tasks.task import decode_drag, decode_node, encode_node_action, encode_pin
 
 
-# ====================================================================== hybrid action <-> env action (eq 2.6, diffdlo.tasks.task)
+# ====================================================================== hybrid action <-> env action (eq 2.6, task)
 def to_env_action(node: torch.Tensor, drag: torch.Tensor, n_nodes: int) -> torch.Tensor:
     """(B,) node ids and (B, 2) drags in [-1, 1] (clipped) -> (B, 3) env node actions in [0, 1]."""
     if node.numel() and (int(node.min()) < 0 or int(node.max()) >= n_nodes):

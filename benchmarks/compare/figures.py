@@ -315,8 +315,8 @@ def _gallery_panels(grid: dict[str, Any], done: list, target: str) -> list[tuple
 
 def final_errors(final: np.ndarray, target: np.ndarray, on_board: bool = False) -> str:
     """A gallery panel's caption: the mean and the worst node's error [mm] of a final shape against its target,
-    centroids aligned as the task's errors (diffdlo.tasks.rewards.node_errors), or where they lie (``on_board``: a route,
-    whose pegs fix where it lies)."""
+    centroids aligned as the task's errors (diffdlo.tasks.rewards.node_errors), or where they lie (``on_board``: a
+    route, whose pegs fix where it lies)."""
     node = (np.linalg.norm(final - target, axis=1) if on_board
             else np.linalg.norm((final - final.mean(0)) - (target - target.mean(0)), axis=1))
     return f"{node.mean() * 1e3:.1f} / {node.max() * 1e3:.1f} mm"

@@ -23,8 +23,8 @@ its gradient w.r.t. the start positions and the drag (largest error over largest
 
     python benchmarks/speed/sim_speed.py --pegs 4 [--batches 64 1024] [--dtype float32] [--repeats 5]
 
-With --pegs K it times instead the moves with pegs and the pin (diffdlo/planar/contact.py) on the default engine (the C++
-kernel on the CPU): K pegs of radius 1-2 cm on a 5 cm circle round the origin, among the random start shapes (those
+With --pegs K it times instead the moves with pegs and the pin (diffdlo/planar/contact.py) on the default engine (the
+C++ kernel on the CPU): K pegs of radius 1-2 cm on a 5 cm circle round the origin, among the random start shapes (those
 that start clear of them: the rope's axis outside every peg), against the same moves without pegs, and the same
 moves with a pin (a random node other than the grasped one) against no pin; for each B the share of ropes that
 touch a peg during the move, the times of one batched move and their ratios, the time of the simulator's own check

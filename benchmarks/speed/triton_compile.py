@@ -4,9 +4,10 @@
 
 Triton's wheel carries its own ptxas, so the compiled path (not the interpreter the tests run on the CPU) is checked
 on any machine: that every variant of the move kernel (drag or free evolution, with or without checkpoints, with
-frames) and of the adjoint (with or without the physics gradients, with frames) compiles, in float32 and float64, and how many registers and
-spilled bytes each takes at the warps per program of ``diffdlo.planar.backends.triton_kernel.WARPS`` (the table is chosen so that
-none spills on sm_90 with 20 nodes). ``--warps`` overrides them, to compare.
+frames) and of the adjoint (with or without the physics gradients, with frames) compiles, in float32 and float64, and
+how many registers and spilled bytes each takes at the warps per program of
+``diffdlo.planar.backends.triton_kernel.WARPS`` (the table is chosen so that none spills on sm_90 with 20 nodes).
+``--warps`` overrides them, to compare.
 """
 from __future__ import annotations
 

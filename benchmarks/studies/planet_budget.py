@@ -13,7 +13,8 @@ planning time per env step (all evaluation ropes planned together, as in trainin
 Budgets not given are the run's own. Writes ``results.json`` under --out (refuses to replace one without
 --overwrite), each row with its episodes (success, moves, final error: the rows share their episodes, to pair).
 Elites are 10 % of the candidates. Among pegs, ``--project-pegs 0 1`` also plans with each predicted rope moved out of
-the pegs (``diffdlo.tasks.routing.clear_of_pegs``: the model's rope never inside a peg), a grid dimension like the budgets:
+the pegs (``diffdlo.tasks.routing.clear_of_pegs``: the model's rope never inside a peg), a grid dimension like the
+budgets:
 
     python -m benchmarks.studies.planet_budget --run runs/compare_route_wm/pets/route/route/seed0 --project-pegs 0 1 \
         --out runs/planet_project_s0

@@ -72,25 +72,25 @@ class EnvOptions:
     """
     target: Any = option("random", help=(
         '"random" (one of TARGET_NAMES drawn at every reset, the thesis\'s default), "random_curve" (a smooth random '
-        "curve drawn at every reset, diffdlo.planar.shapes.random_curve), a name in TARGET_NAMES, an (N, 2) array/tensor, "
-        'or a .npy/.yaml path; or a ROUTE among pegs (the wire-harness task, diffdlo/tasks/routing.py): "route" (a random '
-        'board of 2-4 pegs and a route drawn at every reset, the rope starting beside it) or "route:NAME" (a fixed '
-        "layout of diffdlo/layouts, or route:PATH.yaml). Drawn targets come from the env's per-env generator, seeded "
-        "like the start shapes"))
+        "curve drawn at every reset, diffdlo.planar.shapes.random_curve), a name in TARGET_NAMES, an (N, 2) "
+        "array/tensor, or a .npy/.yaml path; or a ROUTE among pegs (the wire-harness task, diffdlo/tasks/routing.py): "
+        '"route" (a random board of 2-4 pegs and a route drawn at every reset, the rope starting beside it) or '
+        '"route:NAME" (a fixed layout of diffdlo/tasks/layouts, or route:PATH.yaml). Drawn targets come from the '
+        "env's per-env generator, seeded like the start shapes"))
     obs_type: str = option("points", choices=OBS_TYPES, help=(
         '"points" (dict node_poses, target_poses (N, 2) float32: the multi-input observation), "distance" ((N, 2) '
         'float32 rope - target per node: the single-input observation), "image" (dict image, target_image: RGB '
         'uint8 (S, S, 3) of the rope and of the target), "image_single" (dict image: rope drawn over the target in '
         'one picture) or "perceived" (dict node_poses, target_poses like "points", but READ from the "image" '
-        "pictures, end markers drawn, by the perception network ``perception``: diffdlo/perception/network.py; the target "
-        'is read once per episode; a route\'s known pegs are given to the reading and carried exactly as "pegs")'))
+        "pictures, end markers drawn, by the perception network ``perception``: diffdlo/perception/network.py; the "
+        'target is read once per episode; a route\'s known pegs are given to the reading and carried exactly as "pegs")'))
     action_type: str = option("node", choices=ACTION_TYPES, help=(
         '"node" (eq 2.6, [0, 1]^3: node = round(a0 (N-1)), dx, dy = a 2 s - s with s = params.action_scale) or '
         '"pixel" (eq 2.5, [0, 1]^4: (a0, a1) = (column, row) fractions of the image view window, row 0 at the top; '
         'the node nearest to that point is grasped; dx, dy as for "node") or "node_pin" (ours, [0, 1]^4: "node"\'s '
         "three, then a second gripper's node held still during the drag, round(a3 N) - 1: -1 (a3 < 1/(2N)) or the "
-        'grasped node is no pin; diffdlo.tasks.task.decode_pin) or "pixel_pin" (ours, [0, 1]^6: "pixel"\'s four, then the '
-        "second gripper's point (column, row): the node nearest it is held, none where that is the grasped node). "
+        'grasped node is no pin; diffdlo.tasks.task.decode_pin) or "pixel_pin" (ours, [0, 1]^6: "pixel"\'s four, then '
+        "the second gripper's point (column, row): the node nearest it is held, none where that is the grasped node). "
         "Actions outside [0, 1] are clipped to [0, 1]; NaN/inf or a wrong shape raise ValueError"))
     reward: str = option("position_orientation", choices=REWARDS, help=(
         'one of diffdlo.REWARDS ("position_orientation" eq 2.9-2.11, "abs_diff" eq 2.7, "delta_gain" eq 2.8, '
@@ -107,8 +107,8 @@ class EnvOptions:
         "truncated after min(max_steps, max_episode_steps) moves, as ``gymnasium.make``'s TimeLimit wrapper over "
         "the env's own truncation does. None: max_steps alone"))
     success_tol: float | None = option(None, "(0, inf)", says="a positive finite number [m]", help=(
-        "shape error [m] (the mean node distance, diffdlo.tasks.rewards.shape_error) below which a move succeeds (None: "
-        "params.success_tol: 0.01 in params/cable.yaml, Table 2.1)"))
+        "shape error [m] (the mean node distance, diffdlo.tasks.rewards.shape_error) below which a move succeeds "
+        "(None: params.success_tol: 0.01 in params/cable.yaml, Table 2.1)"))
     success_worst_tol: float | None = option(None, "(0, inf)", says="a positive finite number [m] or None", help=(
         "worst node error [m] (the largest node distance, diffdlo.tasks.rewards.worst_node_error) below which a move "
         "succeeds too: success is shape error < success_tol AND worst node error < success_worst_tol (None: no "

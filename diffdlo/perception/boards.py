@@ -1,7 +1,7 @@
 """Ropes among pegs: the pictures of the routing task (docs/ROUTING.md) that the perception reads there.
 
-``board_shapes`` draws ropes on random boards (``diffdlo.tasks.routing.random_layout``) as the routing env shows them: its
-starts beside and across the board, settled among the pegs (the env's own ``routing.start_beside`` /
+``board_shapes`` draws ropes on random boards (``diffdlo.tasks.routing.random_layout``) as the routing env shows them:
+its starts beside and across the board, settled among the pegs (the env's own ``routing.start_beside`` /
 ``start_across``), ropes after random moves among the pegs, and ropes lying on the route near its pegs, as at the end
 of an episode. The fine-tuning (``python -m diffdlo.perception --pegs-share``) and the measurement
 (benchmarks/studies/perception_pegs.py) draw from it with different seeds.

@@ -75,8 +75,8 @@ def draw(points: torch.Tensor, size: int, view_size: float, rope: bool = True,
 def board_coverage(pegs: torch.Tensor | None, size: int, view_size: float,
                    batch: int | None = None) -> torch.Tensor | None:
     """(B, K, 3) pegs (x, y, radius) [m], rows of radius 0 empty (the env's padded ``pegs``) -> (B, S, S) their
-    coverage as the env draws them (``diffdlo.tasks.image.discs``); None stays None. ``batch``: the pictures' count, which
-    the pegs must match (a PerceptionError names a mismatch)."""
+    coverage as the env draws them (``diffdlo.tasks.image.discs``); None stays None. ``batch``: the pictures' count,
+    which the pegs must match (a PerceptionError names a mismatch)."""
     if pegs is None:
         return None
     pegs = torch.as_tensor(pegs)

@@ -105,12 +105,12 @@ class Simulator:
     """Batched planar mass-spring cable on ``device`` in ``dtype``. docs/SIMULATOR.md "Use the simulator" shows the API.
 
     ``backend``: "torch" is the eager reference path (every controller, any device); "kernel" is the fused C++
-    CPU kernel (kinematic controller; diffdlo/planar/backends/csrc/cable.cpp) with a hand-written adjoint, per-rope physics and
-    frame recording included; "auto" (default) uses the kernel where it applies (CPU tensors, kinematic drag) and
-    the torch path elsewhere. "triton" is the fused Triton kernel (diffdlo/planar/backends/triton_kernel.py: one launch per move and
-    one for its adjoint, kinematic controller, per-rope physics and frame recording included) on CUDA tensors, or
-    on CPU tensors in Triton's interpreter (TRITON_INTERPRET=1); "auto" picks it on CUDA where triton imports and
-    the controller is kinematic.
+    CPU kernel (kinematic controller; diffdlo/planar/backends/csrc/cable.cpp) with a hand-written adjoint, per-rope
+    physics and frame recording included; "auto" (default) uses the kernel where it applies (CPU tensors, kinematic
+    drag) and the torch path elsewhere. "triton" is the fused Triton kernel (diffdlo/planar/backends/triton_kernel.py:
+    one launch per move and one for its adjoint, kinematic controller, per-rope physics and frame recording included) on
+    CUDA tensors, or on CPU tensors in Triton's interpreter (TRITON_INTERPRET=1); "auto" picks it on CUDA where triton
+    imports and the controller is kinematic.
     All run the same scheme and agree to rounding.
 
     The engine is chosen once, here: ``engine`` is "kernel", "triton" or "torch", what every ``move``, ``settle``

@@ -108,16 +108,16 @@ def is_success(pos: torch.Tensor, target: torch.Tensor, tol: float = 0.01,
 
 
 def reward_route_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """(B,) ours, for routes (diffdlo/tasks/routing.py): 100 x (mean node distance to the target before - after) [cm], on
-    the board (no centroid alignment: the pegs fix where the route lies). eq 2.8's delta_gain per node in cm."""
+    """(B,) ours, for routes (diffdlo/tasks/routing.py): 100 x (mean node distance to the target before - after) [cm],
+    on the board (no centroid alignment: the pegs fix where the route lies). eq 2.8's delta_gain per node in cm."""
     return 100.0 * ((prev_pos - target).norm(dim=-1).mean(-1) - (pos - target).norm(dim=-1).mean(-1))
 
 
 def reward_route_side_gain(prev_pos: torch.Tensor, pos: torch.Tensor, target: torch.Tensor,
                            pegs: torch.Tensor) -> torch.Tensor:
     """(B,) ours, for routes: 100 x (route cost before - after) [cm], the route cost being the planners'
-    (``diffdlo.tasks.routing.route_cost``: the mean node distance on the board plus SIDE_COST = 5 cm per peg passed on the
-    wrong side). route_gain plus 5 for each peg a move brings to the route's side (minus 5 for each it takes off):
+    (``diffdlo.tasks.routing.route_cost``: the mean node distance on the board plus SIDE_COST = 5 cm per peg passed on
+    the wrong side). route_gain plus 5 for each peg a move brings to the route's side (minus 5 for each it takes off):
     a shaping of the success test's side condition by a potential (Ng et al. 1999), so a policy is paid for the
     side before it is within 1 cm."""
     return 100.0 * (route_cost(prev_pos, target, pegs) - route_cost(pos, target, pegs))

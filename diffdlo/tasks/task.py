@@ -5,7 +5,8 @@ call these functions rather than restating them:
 
 - targets: ``resolve_target`` (a name, an (N, 2) array, a .npy/.yaml file, a family drawn anew per episode, or a
   route among pegs: "route" drawn anew, "route:NAME" a fixed layout) and ``draw_target`` / ``draw_route`` (one
-  episode's target, or layout, from that episode's generator); the routing rules themselves are diffdlo/tasks/routing.py's;
+  episode's target, or layout, from that episode's generator); the routing rules themselves are
+  diffdlo/tasks/routing.py's;
 - actions: ``decode_node`` / ``decode_drag`` / ``encode_node_action`` (the node action, eq 2.6),
   ``decode_pixel_node`` (the pixel action, eq 2.5), ``decode_action`` (either);
 - the greedy move (the node farthest from its place, dragged towards it): ``greedy_drags``;
@@ -43,7 +44,7 @@ DRAWN_OBS = PICTURE_OBS + ("perceived",)
 ACTION_TYPES = ("node", "pixel", "node_pin", "pixel_pin")
 ACTION_DIMS = {"node": 3, "pixel": 4, "node_pin": 4, "pixel_pin": 6}
 ROUTE = "route"                # the routing family: a random layout of pegs and a route per episode
-ROUTE_PREFIX = "route:"        # a fixed layout: "route:NAME" (diffdlo/layouts) or "route:PATH.yaml"
+ROUTE_PREFIX = "route:"        # a fixed layout: "route:NAME" (diffdlo/tasks/layouts) or "route:PATH.yaml"
 ROUTE_OBS = ("points", "image", "image_single", "perceived")      # the observations that carry the pegs
 EXIT_RULES = ("truncate", "fail")
 CUSTOM = "custom"       # the label of a target given as an array or a file
@@ -225,8 +226,9 @@ def step_outcome(rules: Any, prev: torch.Tensor, new: torch.Tensor, target: torc
     Returns (reward, terminated, truncated, success), each (B,). Success (``task_success``): shape_error <
     success_tol and, when success_worst_tol is set, worst_node_error < success_worst_tol; it terminates with reward
     success_bonus. The test is ``task_success`` (a route, ``pegs`` (B, K, 3) given: ``route_success``, on the board).
-    A node outside the workspace rectangle (centred at the origin) truncates the episode (on_exit "truncate", Algorithm 2) or terminates it with reward -exit_penalty (on_exit "fail");
-    reaching max_steps truncates. Every other move gets the named reward minus step_penalty.
+    A node outside the workspace rectangle (centred at the origin) truncates the episode (on_exit "truncate", Algorithm
+    2) or terminates it with reward -exit_penalty (on_exit "fail"); reaching max_steps truncates. Every other move gets
+    the named reward minus step_penalty.
     """
     r = move_reward(rules.reward, prev, new, target, pegs)
     success = task_success(new, target, rules.success_tol, rules.success_worst_tol, pegs)

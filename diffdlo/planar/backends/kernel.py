@@ -1,4 +1,5 @@
-"""The fused C++ CPU kernel (diffdlo/planar/backends/csrc/cable.cpp): build on first use, call through ctypes, autograd wrapper.
+"""The fused C++ CPU kernel (diffdlo/planar/backends/csrc/cable.cpp): build on first use, call through ctypes, autograd
+wrapper.
 
 The kernel is plain C++ with a C ABI, so building it needs only a C++ compiler (g++ or c++ on PATH, or $CXX) and
 takes a few seconds; nothing from PyTorch's headers is compiled. The source is package data (read through
@@ -13,9 +14,10 @@ those four numbers and autograd carries it on to k_d and mass. Frames (positions
 come back per rope up to its own stop (``assemble_frames`` makes the eager path's (F, B, N, 2) of them), and their
 gradients are injected at their substeps in the backward sweep.
 
-Pegs (diffdlo/planar/contact.py) go in as a contiguous (B, K, 3) tensor in the state's dtype (None: no contact, the kernel
-then runs exactly its code without them) and the pin as a (B,) int64 tensor (-1: none; None: no pins); the contact
-parameters rope_radius, contact_stiffness and contact_width are always in ``Setup.fp``. The pegs get no gradient.
+Pegs (diffdlo/planar/contact.py) go in as a contiguous (B, K, 3) tensor in the state's dtype (None: no contact, the
+kernel then runs exactly its code without them) and the pin as a (B,) int64 tensor (-1: none; None: no pins); the
+contact parameters rope_radius, contact_stiffness and contact_width are always in ``Setup.fp``. The pegs get no
+gradient.
 """
 from __future__ import annotations
 

@@ -82,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     for name in LAYOUTS:
         layout = build(name)
-        text = (f"# routing layout {name!r} for the 20-node, 0.5 m rope (python -m diffdlo.tasks.layouts.make_layouts)\n"
+        text = (f"# routing layout {name!r} for the 20-node, 0.5 m rope "
+                f"(python -m diffdlo.tasks.layouts.make_layouts)\n"
                 + yaml.safe_dump({"pegs": [[round(v, 6) for v in row] for row in layout.pegs.tolist()],
                                   "route": [[round(v, 6) for v in row] for row in layout.route.tolist()]},
                                  default_flow_style=None, sort_keys=False))
