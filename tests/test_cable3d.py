@@ -1,0 +1,192 @@
+"""The 3-D two-gripper task (issue 69, a first step): the cables' parameter files, the grippers' move on the chain
+(held markers on their path, at rest at the end, gradients against finite differences), the task's rules on
+hand-made states, and the env (gymnasium's and SB3's checkers, the native vector env, seeding). No recordings."""
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from diffdlo.chain3d import grippers as gr
+from diffdlo.chain3d.cables import CableError, cable_names, load_cable
+from diffdlo.envs import CABLE3D_ENV_ID
+from diffdlo.envs.cable3d import BatchedCable3D
+from diffdlo.tasks import cable3d as rules
+
+F64 = torch.float64
+FAST = {"move_time": 0.1, "settle_time": 0.2, "max_steps": 3}
+
+
+@pytest.fixture(scope="module")
+def short_cable(tmp_path_factory):
+    """A 7-marker, 0.44 m cable with DLO3's fitted numbers: the env's rules at a fraction of the cost."""
+    path = tmp_path_factory.mktemp("cables") / "cables.yaml"
+    data = yaml.safe_load(open(load_cable.__globals__["PARAMS_DIR"] / "cables3d.yaml"))
+    short = dict(data["cables"]["DLO3"], rest_lengths=[0.03, 0.1, 0.1, 0.1, 0.1, 0.03], length=0.46, mass=0.045)
+    path.write_text(yaml.safe_dump({**data, "default": "short", "cables": {"short": short}}))
+    return load_cable(None, path)
+
+
+# ------------------------------------------------------------------ the cables
+def test_the_five_cables_load_with_their_fitted_numbers_and_the_default_is_dlo3():
+    assert cable_names() == ["DLO1", "DLO2", "DLO3", "DLO4", "DLO5"]
+    cables = {n: load_cable(n) for n in cable_names()}
+    assert load_cable().name == "DLO3"
+    assert cables["DLO1"].n_nodes == 13 and all(cables[n].n_nodes == 12 for n in ("DLO2", "DLO3", "DLO4", "DLO5"))
+    ei = [float(cables[n].params.EI) for n in ("DLO5", "DLO4", "DLO1", "DLO2", "DLO3")]
+    assert ei == sorted(ei)                                           # the fitted stiffness order (REAL_CABLE.md)
+    assert cables["DLO3"].spread["EA"] is None and cables["DLO3"].spread["EI"] == pytest.approx(1.03)
+    for c in cables.values():                                         # the markers span most of the paper's length
+        assert 0.85 * c.length < float(c.params.rest_lengths.sum()) < c.length
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda d: d["cables"]["DLO3"].update(EI={"value": -1.0, "spread": 1.0}), r"cable DLO3: EI must be .*>= 0.*-1"),
+    (lambda d: d["cables"]["DLO3"].update(substeps=1), r"1 substeps per 10 ms frame are unstable"),
+    (lambda d: d["cables"]["DLO3"].update(colour="red"), r"unknown \['colour'\]"),
+    (lambda d: d["cables"]["DLO3"].pop("EA"), r"missing \['EA'\]"),
+    (lambda d: d["cables"]["DLO3"].update(rest_lengths=[0.1, 0.0, 0.1, 0.1]), r"rest_lengths\[1\] \[m\] must be"),
+    (lambda d: d.update(held_markers=[0, 2, -2, -1]), r"held_markers must be the two markers at each end"),
+    (lambda d: d.update(default="DLO9"), r"unknown cable 'DLO9': use one of"),
+])
+def test_a_bad_cables_file_is_refused_naming_the_value(tmp_path, change, match):
+    data = yaml.safe_load(open(load_cable.__globals__["PARAMS_DIR"] / "cables3d.yaml"))
+    change(data)
+    path = tmp_path / "cables.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CableError, match=match):
+        load_cable(None, path)
+
+
+# ------------------------------------------------------------------ the grippers' move
+def test_a_move_carries_the_held_markers_on_their_path_and_ends_at_rest(short_cable):
+    start = gr.Grippers(torch.tensor([[[0.3, -0.3, 0.7], [0.6, -0.3, 0.7]]], dtype=F64),
+                        torch.tensor([[[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]], dtype=F64))
+    x = gr.settle(rules.hang(start, short_cable), None, start, short_cable, rest_speed=0.01, check_frames=10,
+                  settle_frames=500)
+    assert bool(x.settled[0])
+    goal = gr.Grippers(start.pos + torch.tensor([0.03, 0.02, -0.05], dtype=F64),
+                       gr.rotate(start.dirs, torch.tensor([0.2, 0.0, 0.0], dtype=F64)))
+    path = gr.gripper_path(gr.poses_of(x.x), goal, short_cable, 20)
+    torch.testing.assert_close(path[-1], gr.held_markers(goal, short_cable))
+    out = gr.move(x.x, None, goal, short_cable, move_frames=20, rest_speed=0.01, check_frames=10,
+                  settle_frames=500)
+    torch.testing.assert_close(out.x[:, [0, 1, -2, -1]], gr.held_markers(goal, short_cable), rtol=0, atol=1e-12)
+    assert bool(out.settled[0]) and int(out.frames[0]) > 20
+    rest = short_cable.params.rest_lengths
+    stretch = (out.x[0, 1:] - out.x[0, :-1]).norm(dim=-1) / rest - 1
+    assert float(stretch.abs().max()) < 0.01                          # hanging, barely stretched (EA 60 N)
+    assert float(out.x[0, 3, 2]) < float(out.x[0, 1, 2]) - 0.05         # the middle sags below the grippers
+
+
+def test_a_move_is_differentiable_in_the_goal_against_finite_differences(short_cable):
+    start = gr.Grippers(torch.tensor([[[0.3, -0.3, 0.7], [0.6, -0.3, 0.7]]], dtype=F64),
+                        torch.tensor([[[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]], dtype=F64))
+    x = rules.hang(start, short_cable)
+    weights = torch.randn(1, short_cable.n_nodes, 3, generator=torch.Generator().manual_seed(0), dtype=F64)
+
+    def loss(shift):
+        goal = gr.Grippers(start.pos + shift, start.dirs)
+        out = gr.move(x, None, goal, short_cable, move_frames=4, rest_speed=1e-9, check_frames=2, settle_frames=2)
+        return (out.x * weights).sum()
+
+    shift = torch.tensor([[[0.01, 0.0, -0.02], [0.0, 0.01, 0.0]]], dtype=F64, requires_grad=True)
+    (grad,) = torch.autograd.grad(loss(shift), shift)
+    eps = 1e-6
+    for index in [(0, 0, 0), (0, 0, 2), (0, 1, 1)]:
+        e = torch.zeros_like(shift)
+        e[index] = eps
+        fd = (loss(shift.detach() + e) - loss(shift.detach() - e)) / (2 * eps)
+        assert float(grad[index]) == pytest.approx(float(fd), rel=1e-5, abs=1e-9)
+
+
+# ------------------------------------------------------------------ the rules
+def test_an_action_is_bounded_per_axis_kept_in_the_workspace_and_within_the_span(short_cable):
+    g = gr.Grippers(torch.tensor([[[0.3, -0.3, 0.7], [0.6, -0.3, 0.7]], [[0.02, 0.18, 0.88], [0.3, 0.18, 0.88]]],
+                                 dtype=F64), torch.tensor([[0.0, 0.0, -1.0]], dtype=F64).expand(2, 2, 3))
+    a = torch.tensor([[1.0, -1.0, 0.5, 0, 0, 0, -1.0, 0, 0, 1.0, 0, 0], [-1.0, 1.0, 1.0, 0, 0, 0, 1.0, 1, 1, 0, 0, 0]],
+                     dtype=F64)
+    goal = rules.decode_action(rules.check_action(a, 2), g, short_cable)
+    shift = goal.pos - g.pos
+    assert float(shift.abs().max()) <= rules.MAX_SHIFT + 1e-12
+    torch.testing.assert_close(shift[0, 0], torch.tensor([0.05, -0.05, 0.025], dtype=F64))
+    low, high = (torch.tensor(w, dtype=F64) for w in rules.WORKSPACE)
+    assert bool(((goal.pos >= low - 1e-12) & (goal.pos <= high + 1e-12)).all())   # rope 1 clipped at the box
+    assert float(goal.pos[1, 0, 0]) == 0.0 and float(goal.pos[1, 0, 2]) == 0.9
+    angle = torch.acos((goal.dirs[0, 1] * g.dirs[0, 1]).sum().clamp(-1, 1))
+    assert float(angle) == pytest.approx(rules.MAX_TURN)              # the turn's full size about x
+    far = rules.keep_reachable(torch.tensor([[[0.0, -0.3, 0.7], [1.1, -0.3, 0.7]]], dtype=F64), short_cable)
+    assert float((far[0, 1] - far[0, 0]).norm()) == pytest.approx(rules.span_limit(short_cable))
+    with pytest.raises(ValueError, match=r"actions must be finite, got NaN/inf in rows \[1\]"):
+        rules.check_action(torch.tensor([[0.0] * 12, [float("nan")] + [0.0] * 11]), 2)
+    with pytest.raises(ValueError, match=r"actions must have shape \(2, 12\) in \[-1, 1\], got \(2, 6\)"):
+        rules.check_action(torch.zeros(2, 6), 2)
+
+
+def test_success_needs_rest_and_both_tolerances():
+    target = torch.zeros(4, 5, 3, dtype=F64)
+    x = target.clone()
+    x[1, :, 0] = 0.012                                                # mean 1.2 cm
+    x[2, 0, 0] = 0.045                                                # mean 0.9 cm, worst 4.5 cm
+    at_rest = torch.tensor([True, True, True, False])
+    assert rules.success(x, target, at_rest, 0.01, 0.02).tolist() == [True, False, False, False]
+    assert float(rules.reward(x, target, target)[1]) == pytest.approx(1.2)
+
+
+def test_a_hung_start_lies_between_its_grippers_near_the_cables_link_lengths(short_cable):
+    g = rules.random_grippers(3, short_cable, torch.Generator().manual_seed(1), F64)
+    x = rules.hang(g, short_cable)
+    lengths = (x[:, 1:] - x[:, :-1]).norm(dim=-1)
+    share = lengths / short_cable.params.rest_lengths                # chords of a curve of the cable's length:
+    assert bool((share <= 1 + 1e-9).all()) and float(share.min()) > 0.9   # never stretched, at most 10 % short
+    torch.testing.assert_close(gr.poses_of(x).pos, g.pos)
+    span = (g.pos[:, 1] - g.pos[:, 0]).norm(dim=-1) / float(short_cable.params.rest_lengths.sum())
+    assert bool(((span >= rules.SPAN_RANGE[0] - 1e-9) & (span <= rules.SPAN_RANGE[1] + 1e-9)).all())
+    tilt = torch.acos(-g.dirs[..., 2])
+    assert float(tilt.max()) <= rules.START_TILT + 1e-9
+
+
+# ------------------------------------------------------------------ the env
+def test_the_env_passes_gymnasiums_and_sb3s_checkers(short_cable):
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+    env = gym.make(CABLE3D_ENV_ID, cable=short_cable, **FAST)
+    check_env(env.unwrapped, skip_render_check=True)
+    sb3_check(env.unwrapped, warn=False)
+
+
+def test_an_episode_is_reproducible_and_the_vector_env_matches_the_single_one(short_cable):
+    single = [gym.make(CABLE3D_ENV_ID, cable=short_cable, **FAST) for _ in range(2)]
+    firsts = [env.reset(seed=7)[0] for env in single]
+    for key in rules.OBS_KEYS:
+        np.testing.assert_array_equal(firsts[0][key], firsts[1][key])
+    venv = gym.make_vec(CABLE3D_ENV_ID, num_envs=2, cable=short_cable, **FAST)
+    obs, info = venv.reset(seed=[7, 8])
+    np.testing.assert_array_equal(obs["markers"][0], firsts[0]["markers"])
+    np.testing.assert_array_equal(obs["target_markers"][0], firsts[0]["target_markers"])
+    action = np.linspace(-1, 1, 12, dtype=np.float32)
+    o1, r1, *_ = single[0].step(action)
+    ov, rv, term, trunc, vinfo = venv.step(np.stack([action, -action]))
+    np.testing.assert_allclose(ov["markers"][0], o1["markers"], rtol=0, atol=1e-6)
+    assert rv[0] == pytest.approx(r1, abs=1e-5) and vinfo["marker_error"].shape == (2,)
+    for _ in range(3):                                                # max_steps 3: truncated, then reset
+        ov, rv, term, trunc, vinfo = venv.step(venv.action_space.sample())
+    assert not trunc.any() and (rv == 0).all()                       # the step after the end: a reset, reward 0
+
+
+def test_bad_env_options_are_refused_by_name(short_cable):
+    for kwargs, match in [({"target": "recorded"}, r"target must be one of \['reachable'\], got 'recorded'"),
+                          ({"move_time": 0}, r"move_time must be a positive number of seconds, got 0"),
+                          ({"success_tol": -1.0}, r"success_tol must be a positive finite number, got -1.0"),
+                          ({"max_steps": 0}, r"max_steps must be a positive integer, got 0")]:
+        with pytest.raises(ValueError, match=match):
+            BatchedCable3D(1, cable=short_cable, **kwargs)
+    with pytest.raises(CableError, match=r"unknown cable 'DLO7'"):
+        BatchedCable3D(1, cable="DLO7")
+    core = BatchedCable3D(1, cable=short_cable, **FAST)
+    core.reset()
+    with pytest.raises(ValueError, match=r"actions must have shape \(1, 12\)"):
+        core.step(torch.zeros(12))
+    assert math.isfinite(float(core.info()["marker_error"][0]))
