@@ -190,3 +190,36 @@ def test_bad_env_options_are_refused_by_name(short_cable):
     with pytest.raises(ValueError, match=r"actions must have shape \(1, 12\)"):
         core.step(torch.zeros(12))
     assert math.isfinite(float(core.info()["marker_error"][0]))
+
+
+# ------------------------------------------------------------------ the planners through the chain
+def test_cem_and_the_gradient_planner_bring_the_cable_closer_to_its_target(short_cable):
+    from planners.cable3d import CEMPlanner, GradientPlanner, run_episode
+    core = BatchedCable3D(1, cable=short_cable, move_time=0.1, settle_time=0.3, max_steps=2)
+    for planner in (CEMPlanner(core, seed=0, candidates=16, elites=4, iterations=2, plan_settle=0.1),
+                    GradientPlanner(core, seed=0, starts=2, steps=3, plan_settle=0.1)):
+        ep = run_episode(core, planner, seed=3, progress=False)
+        assert ep["steps"] >= 1 and len(ep["errors"]) == ep["steps"] + 1 and ep["sim_moves"] > 0
+        assert min(ep["errors"][1:]) < ep["errors"][0]                # its moves make progress on the target
+        assert len(ep["final"]) == short_cable.n_nodes and len(ep["target"]) == short_cable.n_nodes
+
+
+def test_the_planners_command_writes_its_results_and_refuses_bad_flags(tmp_path, capsys):
+    import json
+
+    from planners import cable3d as cli
+    out = tmp_path / "run"
+    argv = ["--cable", "DLO3", "--episodes", "1", "--max-steps", "1", "--move-time", "0.05", "--settle-time", "0.1",
+            "--plan-settle", "0.05", "--candidates", "4", "--elites", "2", "--iterations", "1", "--quiet",
+            "--out", str(out)]
+    assert cli.main(argv) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["cable"] == "DLO3" and results["episodes"] == 1 and len(results["episode_records"]) == 1
+    with pytest.raises(SystemExit):
+        cli.main(argv)                                                # an earlier run is not replaced
+    assert "--overwrite" in capsys.readouterr().err
+    for bad, match in [(["--cable", "DLO8"], "unknown cable 'DLO8'"), (["--elites", "9"], "--elites \\(9\\)"),
+                       (["--iterations", "0"], "--iterations must be >= 1")]:
+        with pytest.raises(SystemExit):
+            cli.main(argv[:-1] + [str(tmp_path / "other")] + bad + ["--overwrite"])
+        assert match.replace("\\", "") in capsys.readouterr().err

@@ -1,0 +1,97 @@
+"""Speed of the 3-D two-gripper task (DiffDLO/Cable3D-v0, docs/CABLE3D.md) on the eager chain: env steps per second at
+several batch sizes (one step: the grippers' 1 s motion and the settle, here capped at ``--settle-time``), one
+CEM planning step (the planner's defaults), forward + backward through one move, and how long each cable takes to
+come to rest after a random move (the settle's share of a step).
+
+    python benchmarks/speed/cable3d_speed.py                       # DLO3, B = 1 64 1024, float32, 2 threads
+    python benchmarks/speed/cable3d_speed.py --batches 1 64 --cable DLO5 --dtype float64
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import torch
+
+from diffdlo.chain3d import grippers as gr
+from diffdlo.chain3d.cables import cable_names
+from diffdlo.envs.cable3d import BatchedCable3D
+from diffdlo.tasks import cable3d as rules
+
+
+def steps_per_second(cable: str, batch: int, dtype: torch.dtype, settle_time: float) -> float:
+    core = BatchedCable3D(batch, cable=cable, settle_time=settle_time, dtype=dtype)
+    core.seed(list(range(batch)))
+    core.reset()
+    actions = torch.rand(batch, rules.ACTION_DIM, generator=torch.Generator().manual_seed(0), dtype=dtype) * 2 - 1
+    t0 = time.perf_counter()
+    core.step(actions)
+    return batch / (time.perf_counter() - t0)
+
+
+def planning_step(cable: str, dtype: torch.dtype) -> float:
+    from planners.cable3d import CEMPlanner
+    core = BatchedCable3D(1, cable=cable, dtype=dtype)
+    core.seed([0])
+    core.reset()
+    planner = CEMPlanner(core)
+    t0 = time.perf_counter()
+    planner.plan(core.x[0], core.target[0])
+    return time.perf_counter() - t0
+
+
+def backward_move(cable: str, dtype: torch.dtype) -> tuple[float, float]:
+    core = BatchedCable3D(1, cable=cable, dtype=dtype)
+    core.seed([0])
+    core.reset()
+    shift = torch.zeros(1, 2, 3, dtype=dtype, requires_grad=True)
+    poses = gr.poses_of(core.x)
+    t0 = time.perf_counter()
+    out = gr.move(core.x, None, gr.Grippers(poses.pos + shift, poses.dirs), core.cable, move_frames=core.move_frames,
+                  rest_speed=core.rest_speed, check_frames=10, settle_frames=100)
+    forward = time.perf_counter() - t0
+    rules.marker_errors(out.x, core.target).mean().backward()
+    return forward, time.perf_counter() - t0 - forward
+
+
+def rest_times(cable: str, batch: int, dtype: torch.dtype) -> list[float]:
+    core = BatchedCable3D(batch, cable=cable, settle_time=10.0, dtype=dtype)
+    core.seed(list(range(batch)))
+    core.reset()
+    actions = torch.rand(batch, rules.ACTION_DIM, generator=torch.Generator().manual_seed(1), dtype=dtype) * 2 - 1
+    info = core.step(actions)[-1]
+    return ((info["frames"] - core.move_frames).float() * 0.01).tolist()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python benchmarks/speed/cable3d_speed.py", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--cable", default="DLO3", choices=cable_names())
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
+    ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--settle-time", type=float, default=1.0, help="[s] the settle's cap in the timed steps")
+    ap.add_argument("--rest", type=int, default=8, help="moves per cable for the rest times (0: skip)")
+    args = ap.parse_args(argv)
+    if min(args.batches) < 1 or args.threads < 1 or args.rest < 0:
+        ap.error("--batches and --threads must be >= 1, --rest >= 0")
+    torch.set_num_threads(args.threads)
+    dtype = getattr(torch, args.dtype)
+    print(f"cable {args.cable}, {args.dtype}, {args.threads} threads, settle capped at {args.settle_time:g} s")
+    print("| B | env steps / s |\n|---|---|")
+    for b in args.batches:
+        print(f"| {b} | {steps_per_second(args.cable, b, dtype, args.settle_time):.1f} |")
+    print(f"one CEM planning step (128 candidates x 5 iterations, horizon 1): {planning_step(args.cable, dtype):.2f} s")
+    forward, backward = backward_move(args.cable, dtype)
+    print(f"one move (1 s motion + 1 s settle), B = 1: forward {forward:.2f} s, backward {backward:.2f} s")
+    if args.rest:
+        print("\n| cable | seconds to rest after a random move (< 1 cm/s): median / max |\n|---|---|")
+        for name in cable_names():
+            t = sorted(rest_times(name, args.rest, dtype))
+            print(f"| {name} | {t[len(t) // 2]:.1f} / {t[-1]:.1f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

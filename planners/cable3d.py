@@ -1,0 +1,236 @@
+"""Planners through the 3-D chain: the two-gripper task on a real cable's fitted chain (diffdlo/tasks/cable3d.py,
+docs/CABLE3D.md), receding horizon: plan a move, execute it in the env, re-plan from where the cable came to rest.
+
+- ``cem``: the generic ``CEM`` (planners/cem.py) over (H, 12) gripper actions in [-1, 1]^12, each candidate rolled
+  through the chain (``ChainObjective``: one batched move per step of the horizon).
+- ``gradient``: Adam on u, a = tanh(u), through the chain's autograd (the whole move differentiable), from
+  ``starts`` random first guesses at once, the best kept.
+The planner's chain is the env's cable; ``--plan-settle`` [s] caps its settle (cheaper, a cable not quite at rest)
+where the env's own move settles up to ``--settle-time``.
+
+    python -m planners.cable3d --cable DLO3 --episodes 5 --out runs/cable3d-cem
+    python -m planners.cable3d --planner gradient --cable DLO3 --episodes 5 --out runs/cable3d-gradient
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm import tqdm
+
+from diffdlo.chain3d import grippers as gr
+from diffdlo.chain3d.cables import CableError, cable_names
+from diffdlo.envs.cable3d import BatchedCable3D
+from diffdlo.tasks import cable3d as rules
+from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic
+from diffdlo.utils.signals import exit_code, stop_on_signals
+
+from .cem import CEM
+
+
+class ChainObjective:
+    """objective(actions (B, H, 12)) -> (B,) the mean marker error [m] after the H moves (plus ``running_weight`` x
+    the errors after the moves before the last), every candidate from the cable ``x`` (N, 3) at rest."""
+
+    def __init__(self, core: BatchedCable3D, x: torch.Tensor, target: torch.Tensor, settle_frames: int,
+                 running_weight: float = 0.5):
+        self.core, self.x, self.target = core, x, target
+        self.settle_frames, self.running_weight = settle_frames, running_weight
+        self.moves = 0                                        # moves simulated (the planner's cost axis)
+
+    def rollout(self, actions: torch.Tensor) -> list[torch.Tensor]:
+        x = self.x.expand(actions.shape[0], *self.x.shape).to(self.core.dtype)
+        states = []
+        for t in range(actions.shape[1]):
+            goal = rules.decode_action(actions[:, t].clamp(-1, 1).to(x), gr.poses_of(x), self.core.cable)
+            x = gr.move(x, None, goal, self.core.cable, move_frames=self.core.move_frames,
+                        rest_speed=self.core.rest_speed, check_frames=10, settle_frames=self.settle_frames).x
+            states.append(x)
+            self.moves += actions.shape[0]
+        return states
+
+    def __call__(self, actions: torch.Tensor) -> torch.Tensor:
+        states = self.rollout(actions)
+        cost = rules.marker_errors(states[-1], self.target).mean(-1)
+        for x in states[:-1]:
+            cost = cost + self.running_weight * rules.marker_errors(x, self.target).mean(-1)
+        return cost
+
+
+class CEMPlanner:
+    name = "cem"
+
+    def __init__(self, core: BatchedCable3D, seed: int = 0, horizon: int = 1, candidates: int = 128,
+                 elites: int = 12, iterations: int = 5, plan_settle: float = 1.0):
+        self.core, self.horizon, self.plan_settle = core, horizon, rules.frames_of(plan_settle, "--plan-settle")
+        self.cem = CEM(rules.ACTION_DIM, horizon, candidates, elites, iterations, low=-1.0, high=1.0,
+                       init_std=0.3, generator=torch.Generator().manual_seed(seed))
+        self.sim_moves = 0
+
+    def plan(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        objective = ChainObjective(self.core, x, target, self.plan_settle)
+        with torch.no_grad():
+            best, _ = self.cem.optimize(objective)
+        self.cem.shift()
+        self.sim_moves += objective.moves
+        return best[0]
+
+
+class GradientPlanner:
+    name = "gradient"
+
+    def __init__(self, core: BatchedCable3D, seed: int = 0, starts: int = 8, steps: int = 12, lr: float = 0.3,
+                 plan_settle: float = 1.0):
+        self.core, self.starts, self.steps, self.lr = core, starts, steps, lr
+        self.plan_settle = rules.frames_of(plan_settle, "--plan-settle")
+        self.gen = torch.Generator().manual_seed(seed)
+        self.sim_moves = 0
+
+    def plan(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        objective = ChainObjective(self.core, x, target, self.plan_settle)
+        u = (0.5 * torch.randn(self.starts, 1, rules.ACTION_DIM, generator=self.gen, dtype=torch.float64)
+             ).to(self.core.dtype).requires_grad_(True)
+        u.data[0] = 0.0                                       # one guess: stay where it is
+        opt = torch.optim.Adam([u], lr=self.lr)
+        best, best_cost = None, float("inf")
+        for _ in range(self.steps):
+            cost = objective(torch.tanh(u))
+            i = int(cost.detach().argmin())
+            if float(cost.detach()[i]) < best_cost:
+                best, best_cost = torch.tanh(u[i, 0]).detach().clone(), float(cost.detach()[i])
+            opt.zero_grad()
+            cost.sum().backward()
+            opt.step()
+        self.sim_moves += objective.moves
+        return best
+
+
+PLANNERS = {"cem": CEMPlanner, "gradient": GradientPlanner}
+
+
+def run_episode(core: BatchedCable3D, planner, seed: int, progress: bool = True) -> dict[str, Any]:
+    """One episode, re-planned after every move; the record and the start, target and final markers."""
+    core.seed([seed])
+    core.reset()
+    start, target = core.x[0].clone(), core.target[0].clone()
+    errors = [float(core.info()["marker_error"][0])]
+    worst = [float(core.info()["worst_marker_error"][0])]
+    moves0, plan_s, steps, success = planner.sim_moves, 0.0, 0, False
+    bar = tqdm(total=core.max_steps, desc=f"{planner.name} {core.cable.name} seed {seed}", disable=not progress,
+               leave=False, dynamic_ncols=True)
+    while not success and steps < core.max_steps:
+        t0 = time.perf_counter()
+        action = planner.plan(core.x[0], target)
+        plan_s += time.perf_counter() - t0
+        _, _, terminated, _, info = core.step(action.reshape(1, -1))
+        steps += 1
+        errors.append(float(info["marker_error"][0]))
+        worst.append(float(info["worst_marker_error"][0]))
+        success = bool(info["is_success"][0])
+        bar.update(1)
+        bar.set_postfix(error_cm=f"{100 * errors[-1]:.2f}")
+    bar.close()
+    return {"seed": seed, "success": success, "steps": steps, "errors": errors, "worst_errors": worst,
+            "plan_seconds_per_move": plan_s / max(steps, 1), "sim_moves": planner.sim_moves - moves0,
+            "start": start.tolist(), "target": target.tolist(), "final": core.x[0].tolist()}
+
+
+def draw(episodes: list[dict[str, Any]], path: Path) -> None:
+    """Start (grey), target (black dashed) and final (blue) markers of each episode in 3-D."""
+    from diffdlo.utils.render import _pyplot
+    plt = _pyplot()
+    fig = plt.figure(figsize=(4 * min(len(episodes), 4), 4))
+    for i, ep in enumerate(episodes[:4]):
+        ax = fig.add_subplot(1, min(len(episodes), 4), i + 1, projection="3d")
+        for key, style in (("start", dict(color="0.6", marker="o", ms=3)), ("target", dict(color="k", ls="--")),
+                           ("final", dict(color="tab:blue", marker="o", ms=3))):
+            x = torch.tensor(ep[key])
+            ax.plot(x[:, 0], x[:, 1], x[:, 2], label=key, **style)
+        ax.set_title(f"seed {ep['seed']}: {'solved' if ep['success'] else 'not solved'} in {ep['steps']}, "
+                     f"{100 * ep['errors'][-1]:.2f} cm", fontsize=9)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+    fig.axes[0].legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m planners.cable3d", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--planner", choices=sorted(PLANNERS), default="cem")
+    ap.add_argument("--cable", default=None, help=f"one of {cable_names()} (default: the file's, DLO3)")
+    ap.add_argument("--episodes", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0, help="episode i is the env reset with seed SEED + i")
+    ap.add_argument("--max-steps", type=int, default=20)
+    ap.add_argument("--move-time", type=float, default=1.0, help="[s] the grippers' motion per move")
+    ap.add_argument("--settle-time", type=float, default=5.0, help="[s] the env's settle cap")
+    ap.add_argument("--plan-settle", type=float, default=1.0, help="[s] the planner's settle cap")
+    ap.add_argument("--horizon", type=int, default=1, help="cem: moves planned ahead")
+    ap.add_argument("--candidates", type=int, default=128, help="cem: sequences per iteration")
+    ap.add_argument("--elites", type=int, default=12, help="cem: elites refit per iteration")
+    ap.add_argument("--iterations", type=int, default=5, help="cem: iterations per move")
+    ap.add_argument("--starts", type=int, default=8, help="gradient: first guesses optimised together")
+    ap.add_argument("--steps", type=int, default=12, help="gradient: Adam steps per move")
+    ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--quiet", action="store_true")
+    args = ap.parse_args(argv)
+    if args.episodes < 1 or args.max_steps < 1:
+        ap.error(f"--episodes and --max-steps must be >= 1, got {args.episodes} and {args.max_steps}")
+    try:
+        core = BatchedCable3D(1, cable=args.cable, max_steps=args.max_steps, move_time=args.move_time,
+                              settle_time=args.settle_time, dtype=getattr(torch, args.dtype))
+        options = ({"horizon": args.horizon, "candidates": args.candidates, "elites": args.elites,
+                    "iterations": args.iterations} if args.planner == "cem" else
+                   {"starts": args.starts, "steps": args.steps})
+        for key, value in options.items():
+            if value < 1:
+                raise ValueError(f"--{key} must be >= 1, got {value}")
+        if args.planner == "cem" and args.elites > args.candidates:
+            raise ValueError(f"--elites ({args.elites}) must be at most --candidates ({args.candidates})")
+        planner = PLANNERS[args.planner](core, seed=args.seed, plan_settle=args.plan_settle, **options)
+    except (CableError, ValueError) as exc:
+        ap.error(str(exc))
+    out = args.out or Path(f"runs/cable3d-{args.planner}-{core.cable.name}")
+    try:
+        check_fresh_out(out, args.overwrite, "an earlier run")
+    except FileExistsError as exc:
+        ap.error(str(exc))
+    try:
+        with out_lock(out), stop_on_signals():
+            t0 = time.perf_counter()
+            episodes = [run_episode(core, planner, args.seed + i, progress=not args.quiet)
+                        for i in range(args.episodes)]
+            solved = [e for e in episodes if e["success"]]
+            summary = {"planner": args.planner, "cable": core.cable.name, "episodes": len(episodes),
+                       "success_rate": len(solved) / len(episodes),
+                       "mean_moves_to_success": (sum(e["steps"] for e in solved) / len(solved)) if solved else None,
+                       "plan_seconds_per_move": sum(e["plan_seconds_per_move"] for e in episodes) / len(episodes),
+                       "sim_moves_per_episode": sum(e["sim_moves"] for e in episodes) / len(episodes),
+                       "options": options, "wall_seconds": time.perf_counter() - t0, "argv": sys.argv[1:] if argv is None else argv}
+            write_json_atomic(out / "results.json", {**summary, "episode_records": episodes})
+            try:
+                draw(episodes, out / "shapes.png")
+            except ImportError:
+                pass
+    except OutBusyError as exc:
+        ap.error(str(exc))
+    except KeyboardInterrupt as exc:
+        print(f"{args.planner}: stopped by {exc or 'SIGINT'}: no results written", file=sys.stderr)
+        return exit_code(exc)
+    print(f"{args.planner} {core.cable.name}: success {len(solved)}/{len(episodes)}, moves to success "
+          f"{summary['mean_moves_to_success'] or '-'}, plan {summary['plan_seconds_per_move']:.2f} s/move -> "
+          f"{out / 'results.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
