@@ -5,8 +5,11 @@ docs/CABLE3D.md), receding horizon: plan a move, execute it in the env, re-plan 
   through the chain (``ChainObjective``: one batched move per step of the horizon).
 - ``gradient``: Adam on u, a = tanh(u), through the chain's autograd (the whole move differentiable), from
   ``starts`` random first guesses at once, the best kept.
-The planner's chain is the env's cable; ``--plan-settle`` [s] caps its settle (cheaper, a cable not quite at rest)
-where the env's own move settles up to ``--settle-time``.
+The planner's chain is the env's cable unless told otherwise: ``--model-cable`` plans with another cable's fit,
+``--stand-in`` makes the env's cable the fitted physics plus its learned residual (the stand-in for the real cable)
+while the planner plans with physics alone (``--plan-with stand-in``: with the stand-in itself), ``--open-loop``
+plans a whole sequence once and executes it blind. ``--plan-settle`` [s] caps the planner's settle (cheaper, a cable
+not quite at rest) where the env's own move settles up to ``--settle-time``.
 
     python -m planners.cable3d --cable DLO3 --episodes 5 --out runs/cable3d-cem
     python -m planners.cable3d --planner gradient --cable DLO3 --episodes 5 --out runs/cable3d-gradient
@@ -47,8 +50,7 @@ class ChainObjective:
         states = []
         for t in range(actions.shape[1]):
             goal = rules.decode_action(actions[:, t].clamp(-1, 1).to(x), gr.poses_of(x), self.core.cable)
-            x = gr.move(x, None, goal, self.core.cable, move_frames=self.core.move_frames,
-                        rest_speed=self.core.rest_speed, check_frames=10, settle_frames=self.settle_frames).x
+            x = self.core.move(x, goal, settle_frames=self.settle_frames).x
             states.append(x)
             self.moves += actions.shape[0]
         return states
@@ -71,12 +73,17 @@ class CEMPlanner:
                        init_std=0.3, generator=torch.Generator().manual_seed(seed))
         self.sim_moves = 0
 
-    def plan(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def plan_sequence(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """The best (H, 12) sequence from the cable ``x`` at rest (open loop: all executed blind)."""
         objective = ChainObjective(self.core, x, target, self.plan_settle)
         with torch.no_grad():
             best, _ = self.cem.optimize(objective)
-        self.cem.shift()
         self.sim_moves += objective.moves
+        return best
+
+    def plan(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        best = self.plan_sequence(x, target)
+        self.cem.shift()
         return best[0]
 
 
@@ -112,8 +119,11 @@ class GradientPlanner:
 PLANNERS = {"cem": CEMPlanner, "gradient": GradientPlanner}
 
 
-def run_episode(core: BatchedCable3D, planner, seed: int, progress: bool = True) -> dict[str, Any]:
-    """One episode, re-planned after every move; the record and the start, target and final markers."""
+def run_episode(core: BatchedCable3D, planner, seed: int, progress: bool = True,
+                open_loop: bool = False) -> dict[str, Any]:
+    """One episode in the env ``core`` (its cable may differ from the planner's model), re-planned after every move
+    (closed loop) or, ``open_loop``, one plan of the planner's horizon made at the start and executed blind; the
+    record and the start, target and final markers."""
     core.seed([seed])
     core.reset()
     start, target = core.x[0].clone(), core.target[0].clone()
@@ -122,9 +132,17 @@ def run_episode(core: BatchedCable3D, planner, seed: int, progress: bool = True)
     moves0, plan_s, steps, success = planner.sim_moves, 0.0, 0, False
     bar = tqdm(total=core.max_steps, desc=f"{planner.name} {core.cable.name} seed {seed}", disable=not progress,
                leave=False, dynamic_ncols=True)
+    blind = None
     while not success and steps < core.max_steps:
         t0 = time.perf_counter()
-        action = planner.plan(core.x[0], target)
+        if open_loop:
+            if blind is None:
+                blind = list(planner.plan_sequence(core.x[0], target))
+            if not blind:
+                break
+            action = blind.pop(0)
+        else:
+            action = planner.plan(core.x[0], target)
         plan_s += time.perf_counter() - t0
         _, _, terminated, _, info = core.step(action.reshape(1, -1))
         steps += 1
@@ -178,6 +196,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iterations", type=int, default=5, help="cem: iterations per move")
     ap.add_argument("--starts", type=int, default=8, help="gradient: first guesses optimised together")
     ap.add_argument("--steps", type=int, default=12, help="gradient: Adam steps per move")
+    ap.add_argument("--model-cable", default=None, help="the planner's cable (default: --cable's): a parameter "
+                                                         "mismatch, planned with one cable's fit, run on another's")
+    ap.add_argument("--stand-in", type=Path, default=None,
+                    help="a residual checkpoint of --cable (python -m benchmarks.real_cable_residual's "
+                         "DLO<k>_residual.pt): the env's cable is the fitted physics + that residual, the stand-in "
+                         "for the real cable; the planner plans with physics alone unless --plan-with stand-in")
+    ap.add_argument("--plan-with", choices=("physics", "stand-in"), default="physics")
+    ap.add_argument("--open-loop", action="store_true", help="cem: plan --horizon moves once, execute them blind")
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--overwrite", action="store_true")
@@ -186,8 +212,27 @@ def main(argv: list[str] | None = None) -> int:
     if args.episodes < 1 or args.max_steps < 1:
         ap.error(f"--episodes and --max-steps must be >= 1, got {args.episodes} and {args.max_steps}")
     try:
-        core = BatchedCable3D(1, cable=args.cable, max_steps=args.max_steps, move_time=args.move_time,
-                              settle_time=args.settle_time, dtype=getattr(torch, args.dtype))
+        residual = None
+        if args.stand_in is not None:
+            from diffdlo.chain3d.residual import ResidualError, load
+            try:
+                residual = load(args.stand_in).to(getattr(torch, args.dtype))
+            except ResidualError as exc:
+                raise ValueError(f"--stand-in: {exc}") from None
+        elif args.plan_with == "stand-in":
+            raise ValueError("--plan-with stand-in needs --stand-in")
+        if args.open_loop and args.planner != "cem":
+            raise ValueError("--open-loop plans a whole sequence: --planner cem")
+        settings = dict(max_steps=args.max_steps, move_time=args.move_time, settle_time=args.settle_time,
+                        dtype=getattr(torch, args.dtype))
+        core = BatchedCable3D(1, cable=args.cable, residual=residual, **settings)
+        model_cable = args.model_cable or args.cable
+        model = core if model_cable == args.cable and (residual is None or args.plan_with == "stand-in") else \
+            BatchedCable3D(1, cable=model_cable, residual=residual if args.plan_with == "stand-in" else None,
+                           **settings)
+        if model.cable.n_nodes != core.cable.n_nodes:
+            raise ValueError(f"--model-cable {model.cable.name} has {model.cable.n_nodes} markers, the env's cable "
+                             f"{core.cable.name} {core.cable.n_nodes}: plan with a cable of as many")
         options = ({"horizon": args.horizon, "candidates": args.candidates, "elites": args.elites,
                     "iterations": args.iterations} if args.planner == "cem" else
                    {"starts": args.starts, "steps": args.steps})
@@ -196,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"--{key} must be >= 1, got {value}")
         if args.planner == "cem" and args.elites > args.candidates:
             raise ValueError(f"--elites ({args.elites}) must be at most --candidates ({args.candidates})")
-        planner = PLANNERS[args.planner](core, seed=args.seed, plan_settle=args.plan_settle, **options)
+        planner = PLANNERS[args.planner](model, seed=args.seed, plan_settle=args.plan_settle, **options)
     except (CableError, ValueError) as exc:
         ap.error(str(exc))
     out = args.out or Path(f"runs/cable3d-{args.planner}-{core.cable.name}")
@@ -207,10 +252,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with out_lock(out), stop_on_signals():
             t0 = time.perf_counter()
-            episodes = [run_episode(core, planner, args.seed + i, progress=not args.quiet)
+            episodes = [run_episode(core, planner, args.seed + i, progress=not args.quiet, open_loop=args.open_loop)
                         for i in range(args.episodes)]
             solved = [e for e in episodes if e["success"]]
-            summary = {"planner": args.planner, "cable": core.cable.name, "episodes": len(episodes),
+            summary = {"planner": args.planner, "cable": core.cable.name, "model_cable": model.cable.name,
+                       "stand_in": None if args.stand_in is None else str(args.stand_in),
+                       "plan_with": args.plan_with, "open_loop": args.open_loop, "episodes": len(episodes),
                        "success_rate": len(solved) / len(episodes),
                        "mean_moves_to_success": (sum(e["steps"] for e in solved) / len(solved)) if solved else None,
                        "plan_seconds_per_move": sum(e["plan_seconds_per_move"] for e in episodes) / len(episodes),

@@ -223,3 +223,33 @@ def test_the_planners_command_writes_its_results_and_refuses_bad_flags(tmp_path,
         with pytest.raises(SystemExit):
             cli.main(argv[:-1] + [str(tmp_path / "other")] + bad + ["--overwrite"])
         assert match.replace("\\", "") in capsys.readouterr().err
+
+
+def test_the_stand_in_adds_its_residual_to_the_physics_and_a_wrong_one_is_refused(short_cable):
+    from diffdlo.chain3d.residual import ResidualConfig, ResidualNet
+    net = ResidualNet(ResidualConfig(n=short_cable.n_nodes, held=short_cable.held)).double()
+    physics = BatchedCable3D(1, cable=short_cable, **FAST)
+    stand_in = BatchedCable3D(1, cable=short_cable, residual=net, **FAST)
+    for core in (physics, stand_in):
+        core.seed([5])
+        core.reset()
+    torch.testing.assert_close(stand_in.x, physics.x, rtol=0, atol=0)       # a fresh residual is zero: the physics
+    with torch.no_grad():
+        net.net[-1].bias.fill_(0.5)                                           # now it pushes every free marker
+    action = torch.full((1, 12), 0.5, dtype=F64)
+    assert float((stand_in.step(action)[0]["markers"] - physics.step(action)[0]["markers"]).abs().max()) > 1e-3
+    wrong = ResidualNet(ResidualConfig(n=short_cable.n_nodes + 1, held=(0, 1, 6, 7)))
+    with pytest.raises(ValueError, match=r"residual: a diffdlo.chain3d.residual network for 7 markers"):
+        BatchedCable3D(1, cable=short_cable, residual=wrong)
+
+
+def test_the_planners_command_refuses_what_cannot_be_planned(tmp_path, capsys):
+    from planners import cable3d as cli
+    base = ["--episodes", "1", "--max-steps", "1", "--quiet", "--out", str(tmp_path / "x")]
+    for bad, match in [(["--cable", "DLO3", "--model-cable", "DLO1"], "--model-cable DLO1 has 13 markers"),
+                       (["--plan-with", "stand-in"], "--plan-with stand-in needs --stand-in"),
+                       (["--planner", "gradient", "--open-loop"], "--open-loop plans a whole sequence"),
+                       (["--stand-in", str(tmp_path / "none.pt")], "--stand-in: residual checkpoint")]:
+        with pytest.raises(SystemExit):
+            cli.main(base + bad)
+        assert match in capsys.readouterr().err

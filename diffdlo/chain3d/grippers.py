@@ -15,7 +15,7 @@ Pure batched functions of tensors; device and dtype follow the state.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import torch
 
@@ -94,9 +94,10 @@ def _held_mask(cable: Cable, device: torch.device) -> torch.Tensor:
 
 
 def settle(x: torch.Tensor, v: torch.Tensor | None, grippers: Grippers, cable: Cable, *, rest_speed: float,
-           check_frames: int, settle_frames: int) -> MoveResult:
+           check_frames: int, settle_frames: int, accel: Callable | None = None) -> MoveResult:
     """The cable held still by ``grippers`` until its free markers are slower than ``rest_speed`` [m/s] (checked
-    every ``check_frames`` frames, at most ``settle_frames``); each cable frozen once at rest."""
+    every ``check_frames`` frames, at most ``settle_frames``); each cable frozen once at rest. ``accel``: an extra
+    acceleration (x, v) -> (B, N, 3), e.g. a learned residual (diffdlo/chain3d/residual.py): chain.rollout's."""
     batch = x.shape[0]
     mask = _held_mask(cable, x.device)
     v = torch.zeros_like(x) if v is None else v
@@ -107,7 +108,8 @@ def settle(x: torch.Tensor, v: torch.Tensor | None, grippers: Grippers, cable: C
     while done < settle_frames and not bool(settled.all()):
         chunk = min(check_frames, settle_frames - done)
         path = held.unsqueeze(0).expand(chunk + 1, *held.shape)
-        xs, vs = rollout(x, v, mask, path, cable.params, cable.substeps, frame_dt=FRAME_DT, return_velocities=True)
+        xs, vs = rollout(x, v, mask, path, cable.params, cable.substeps, frame_dt=FRAME_DT, return_velocities=True,
+                         accel=accel)
         keep = settled.view(batch, 1, 1)
         x, v = torch.where(keep, x, xs[-1]), torch.where(keep, v, vs[-1])
         frames = frames + (~settled).to(torch.int64) * chunk
@@ -118,12 +120,13 @@ def settle(x: torch.Tensor, v: torch.Tensor | None, grippers: Grippers, cable: C
 
 
 def move(x: torch.Tensor, v: torch.Tensor | None, goal: Grippers, cable: Cable, *, move_frames: int,
-         rest_speed: float, check_frames: int, settle_frames: int) -> MoveResult:
+         rest_speed: float, check_frames: int, settle_frames: int, accel: Callable | None = None) -> MoveResult:
     """Both grippers from their poses in ``x`` (B, N, 3) to ``goal`` along the minimum-jerk path over
-    ``move_frames`` frames, then held there while the cable comes to rest (``settle``)."""
+    ``move_frames`` frames, then held there while the cable comes to rest (``settle``; ``accel`` as there)."""
     mask = _held_mask(cable, x.device)
     path = gripper_path(poses_of(x), goal, cable, move_frames)
-    xs, vs = rollout(x, v, mask, path, cable.params, cable.substeps, frame_dt=FRAME_DT, return_velocities=True)
+    xs, vs = rollout(x, v, mask, path, cable.params, cable.substeps, frame_dt=FRAME_DT, return_velocities=True,
+                     accel=accel)
     out = settle(xs[-1], vs[-1], goal, cable, rest_speed=rest_speed, check_frames=check_frames,
-                 settle_frames=settle_frames)
+                 settle_frames=settle_frames, accel=accel)
     return out._replace(frames=out.frames + move_frames)

@@ -26,14 +26,15 @@ INFO_KEYS = ("marker_error", "worst_marker_error", "at_rest", "is_success", "fra
 
 class BatchedCable3D:
     """B episodes of the 3-D two-gripper task on one cable (``cable``: a name of params/cables3d.yaml, a
-    ``chain3d.cables.Cable``, or None for the file's default). ``move_time``, ``settle_time`` [s], ``rest_speed``
+    ``chain3d.cables.Cable``, or None for the file's default; ``residual``: a diffdlo.chain3d.residual network
+    trained on that cable, added to its physics: the stand-in for the real cable). ``move_time``, ``settle_time`` [s], ``rest_speed``
     [m/s]: a move's gripper motion, its settle's cap and rest threshold; ``success_tol``, ``success_worst_tol`` [m]:
     the mean and worst marker error of a success; ``max_steps`` moves an episode. dtype float64 or float32."""
 
     def __init__(self, num_envs: int = 1, cable: str | Cable | None = None, target: str = "reachable",
                  max_steps: int = 20, move_time: float = 1.0, settle_time: float = 5.0, rest_speed: float = 0.01,
                  success_tol: float = 0.01, success_worst_tol: float = 0.02, success_bonus: float = 20.0,
-                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float64):
+                 residual: Any = None, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float64):
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if target not in rules.TARGETS:
@@ -47,6 +48,13 @@ class BatchedCable3D:
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.cable = cable if isinstance(cable, Cable) else load_cable(cable)
+        if residual is not None:            # the stand-in for the real cable: the fitted physics + its residual
+            config = getattr(residual, "config", None)
+            if config is None or config.n != self.cable.n_nodes or tuple(config.held) != self.cable.held:
+                raise ValueError(f"residual: a diffdlo.chain3d.residual network for {self.cable.n_nodes} markers held "
+                                 f"at {self.cable.held} (cable {self.cable.name}), got "
+                                 f"{'none' if config is None else (config.n, tuple(config.held))}")
+        self.residual = residual
         self.num_envs, self.target_kind, self.max_steps = num_envs, target, max_steps
         self.move_frames = rules.frames_of(move_time, "move_time")
         self.settle_frames = rules.frames_of(settle_time, "settle_time")
@@ -64,13 +72,13 @@ class BatchedCable3D:
         self.info_state = {k: torch.zeros(num_envs, device=self.device) for k in INFO_KEYS}
 
     # ---------------------------------------------------------------- physics with the env's settings
-    def move(self, x: torch.Tensor, goal: gr.Grippers) -> gr.MoveResult:
+    def move(self, x: torch.Tensor, goal: gr.Grippers, settle_frames: int | None = None) -> gr.MoveResult:
         return gr.move(x, None, goal, self.cable, move_frames=self.move_frames, rest_speed=self.rest_speed,
-                       check_frames=10, settle_frames=self.settle_frames)
+                       check_frames=10, settle_frames=settle_frames or self.settle_frames, accel=self.residual)
 
     def settle(self, x: torch.Tensor) -> gr.MoveResult:
         return gr.settle(x, None, gr.poses_of(x), self.cable, rest_speed=self.rest_speed, check_frames=10,
-                         settle_frames=self.settle_frames)
+                         settle_frames=self.settle_frames, accel=self.residual)
 
     # ---------------------------------------------------------------- episodes
     def seed(self, seeds: list[Any]) -> None:
