@@ -20,6 +20,7 @@ from gymnasium.vector.utils import batch_space
 from ..chain3d import grippers as gr
 from ..chain3d.cables import Cable, load_cable
 from ..tasks import cable3d as rules
+from .vector import vector_info
 
 INFO_KEYS = ("marker_error", "worst_marker_error", "at_rest", "is_success", "frames")
 
@@ -220,8 +221,4 @@ class Cable3DVectorEnv(VectorEnv):
         return _numpy(obs), reward.cpu().numpy().astype(np.float64), terminated, truncated, self._info(info)
 
     def _info(self, info: dict[str, torch.Tensor]) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for key, value in info.items():
-            out[key] = value.cpu().numpy()
-            out[f"_{key}"] = np.ones(self.num_envs, dtype=bool)
-        return out
+        return vector_info(info, self.num_envs)

@@ -45,6 +45,16 @@ def with_time_limit(options: EnvOptions | None, keywords: dict[str, Any]) -> Env
     return dataclasses.replace(options, max_episode_steps=nearer)
 
 
+def vector_info(info: dict[str, torch.Tensor], num_envs: int) -> dict[str, Any]:
+    """A core's (num_envs,) tensors as a vector env's info: numpy arrays, each with its ``_key`` mask (all True:
+    every sub-env reports every step)."""
+    out: dict[str, Any] = {}
+    for key, value in info.items():
+        out[key] = value.cpu().numpy()
+        out[f"_{key}"] = np.ones(num_envs, dtype=bool)
+    return out
+
+
 class ShapeControlVectorEnv(VectorEnv):
     """num_envs shape-control episodes on one ``BatchedShapeControl`` (the same ``options`` or keyword arguments as
     the single env).
@@ -113,11 +123,7 @@ class ShapeControlVectorEnv(VectorEnv):
         return to_numpy(obs), reward.cpu().numpy().astype(np.float64), terminated, truncated, vector_info
 
     def _info(self, info: dict[str, torch.Tensor]) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for key, value in info.items():
-            out[key] = value.cpu().numpy()
-            out[f"_{key}"] = np.ones(self.num_envs, dtype=bool)
-        return out
+        return vector_info(info, self.num_envs)
 
     def _final_entries(self, final_obs: Any, step_info: dict[str, torch.Tensor], ended: np.ndarray) -> dict[str, Any]:
         """SyncVectorEnv's SAME_STEP entries: final_obs, final_info and their masks, for the ended sub-envs only."""
