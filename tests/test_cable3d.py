@@ -253,3 +253,28 @@ def test_the_planners_command_refuses_what_cannot_be_planned(tmp_path, capsys):
         with pytest.raises(SystemExit):
             cli.main(base + bad)
         assert match in capsys.readouterr().err
+
+
+def test_the_cables_command_reads_rest_lengths_and_speeds_from_recordings(tmp_path, capsys):
+    """Synthetic recordings in DEFORM's format (a pickled (T, 3, n) nested list): markers 0.1 m apart translating
+    at 0.5 m/s give rest lengths of 0.1 m and every speed 0.5 m/s."""
+    import pickle
+
+    from diffdlo.chain3d import cables
+    from diffdlo.chain3d.deform import CABLES
+    for number, spec in CABLES.items():
+        frames = [[[0.1 * j + 0.005 * t for j in range(spec.n_markers)], [0.0] * spec.n_markers,
+                   [0.5] * spec.n_markers] for t in range(20)]
+        for split in ("train", "eval"):
+            folder = tmp_path / f"DLO{number}" / split
+            folder.mkdir(parents=True)
+            (folder / "1.pkl").write_bytes(pickle.dumps(frames))
+    assert cables.main(["--data", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "DLO3: rest_lengths: [0.10000, 0.10000" in out and out.count("rest_lengths") == 5
+    assert cables.main(["--data", str(tmp_path), "--speeds"]) == 0
+    out = capsys.readouterr().out
+    assert "DLO5: 18 frames; free markers [0.5, 0.5, 0.5, 0.5], held ends [0.5, 0.5, 0.5, 0.5]" in out
+    with pytest.raises(SystemExit):
+        cables.main(["--speeds"])
+    assert "--speeds needs --data" in capsys.readouterr().err

@@ -7,6 +7,7 @@ centimetre (docs/REAL_CABLE.md) without DEFORM's data. A bad file or value is re
 
     python -m diffdlo.chain3d.cables                          # the cables and their numbers
     python -m diffdlo.chain3d.cables --data DEFORM/data_set   # each cable's rest lengths from its train recordings
+    python -m diffdlo.chain3d.cables --data DEFORM/data_set --speeds   # how fast its markers move when recorded
 """
 from __future__ import annotations
 
@@ -139,7 +140,27 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, help="DEFORM's data_set folder: print each cable's rest lengths (the median "
                                               "marker gaps of its train recordings, as the fit's chain)")
+    ap.add_argument("--speeds", action="store_true", help="with --data: how fast each cable's markers move in its "
+                                                          "eval recordings (quantiles of the fastest free and held "
+                                                          "marker's speed per frame): whether any frame is at rest")
     args = ap.parse_args(argv)
+    if args.speeds and args.data is None:
+        ap.error("--speeds needs --data")
+    if args.speeds:
+        from .deform import RecordingError, load_split
+        levels = (0.0, 0.01, 0.1, 0.5)
+        print(f"fastest marker speed per frame [m/s] (central differences), quantiles {levels}")
+        for number, spec in sorted(CABLES.items()):
+            try:
+                recordings = load_split(args.data, number, "eval")
+            except RecordingError as exc:
+                ap.error(str(exc))
+            v = torch.cat([(x[2:] - x[:-2]).norm(dim=-1) / (2 * FRAME_DT) for x in recordings.values()])
+            q = torch.tensor(levels, dtype=v.dtype)
+            free, held = torch.quantile(v[:, 2:-2].amax(-1), q), torch.quantile(v[:, [0, -1]].amax(-1), q)
+            print(f"{spec.name}: {v.shape[0]} frames; free markers {[round(x, 3) for x in free.tolist()]}, held "
+                  f"ends {[round(x, 3) for x in held.tolist()]}")
+        return 0
     if args.data is not None:
         from .deform import RecordingError, load_split
         from .fit import cable_model
