@@ -170,6 +170,9 @@ def draw(episodes: list[dict[str, Any]], path: Path) -> None:
             ax.plot(x[:, 0], x[:, 1], x[:, 2], label=key, **style)
         ax.set_title(f"seed {ep['seed']}: {'solved' if ep['success'] else 'not solved'} in {ep['steps']}, "
                      f"{100 * ep['errors'][-1]:.2f} cm", fontsize=9)
+        points = torch.cat([torch.tensor(ep[k]) for k in ("start", "target", "final")])
+        ax.set_box_aspect(tuple((points.amax(0) - points.amin(0)).clamp_min(0.05).tolist()))   # metres alike
+        ax.locator_params(nbins=4)
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.set_zlabel("z [m]")
