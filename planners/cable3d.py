@@ -208,12 +208,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plan-with", choices=("physics", "stand-in"), default="physics")
     ap.add_argument("--open-loop", action="store_true", help="cem: plan --horizon moves once, execute them blind")
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--quiet", action="store_true")
     args = ap.parse_args(argv)
     if args.episodes < 1 or args.max_steps < 1:
         ap.error(f"--episodes and --max-steps must be >= 1, got {args.episodes} and {args.max_steps}")
+    if args.threads is not None:
+        if args.threads < 1:
+            ap.error(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
     try:
         residual = None
         if args.stand_in is not None:

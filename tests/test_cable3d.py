@@ -278,3 +278,23 @@ def test_the_cables_command_reads_rest_lengths_and_speeds_from_recordings(tmp_pa
     with pytest.raises(SystemExit):
         cables.main(["--speeds"])
     assert "--speeds needs --data" in capsys.readouterr().err
+
+
+def test_the_grid_collects_its_cells_and_skips_finished_ones(tmp_path, capsys):
+    import json
+
+    from benchmarks import cable3d_grid
+    for seed, wins in ((0, [True, True]), (1, [True, False])):
+        folder = cable3d_grid.cell(tmp_path, "cem", "DLO3", seed)
+        folder.mkdir(parents=True)
+        records = [{"seed": 1000 * seed + i, "success": w, "steps": 2 if w else 20, "errors": [0.05, 0.008 if w else 0.02],
+                    "worst_errors": [0.07, 0.012 if w else 0.03]} for i, w in enumerate(wins)]
+        (folder / "results.json").write_text(json.dumps({"planner": "cem", "cable": "DLO3", "argv": [], "options": {},
+                                                         "plan_seconds_per_move": 2.0, "sim_moves_per_episode": 640,
+                                                         "episode_records": records}))
+    assert cable3d_grid.run(tmp_path, "cem", ["DLO3"], [0, 1], 2) == 0          # both done: nothing run
+    assert cable3d_grid.main(["--collect", str(tmp_path), "--record", str(tmp_path / "record.json")]) == 0
+    out = capsys.readouterr().out
+    assert "| cem DLO3 | 2 x 2 | 75 % | 2.0 | 0.80 / 2.00 | 2.0 |" in out
+    record = json.loads((tmp_path / "record.json").read_text())
+    assert len(record["rows"]["cem DLO3"]) == 2
