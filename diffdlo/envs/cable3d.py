@@ -108,12 +108,9 @@ class BatchedCable3D:
             index = torch.tensor(ids, device=self.device)
             self.x[index], self.target[index] = x, target
             self.steps[index] = 0
-            at_rest = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
-            at_rest[index] = settled.settled
-            metrics = self._metrics(self.x, at_rest)
+            metrics = self._metrics(x, settled.settled, target=target)
             for k in INFO_KEYS:
-                self.info_state[k] = torch.where(torch.isin(torch.arange(self.num_envs, device=self.device), index),
-                                                 metrics[k].to(self.info_state[k]), self.info_state[k])
+                self.info_state[k][index] = metrics[k].to(self.info_state[k])
         return self.observe(), self.info()
 
     def step(self, actions: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor,
@@ -133,9 +130,11 @@ class BatchedCable3D:
         truncated = ~success & (self.steps >= self.max_steps)
         return self.observe(), reward, success, truncated, self.info()
 
-    def _metrics(self, x: torch.Tensor, at_rest: torch.Tensor, frames: torch.Tensor | None = None):
-        errors = rules.marker_errors(x, self.target)
-        ok = rules.success(x, self.target, at_rest, self.success_tol, self.success_worst_tol)
+    def _metrics(self, x: torch.Tensor, at_rest: torch.Tensor, frames: torch.Tensor | None = None,
+                 target: torch.Tensor | None = None):
+        target = self.target if target is None else target
+        errors = rules.marker_errors(x, target)
+        ok = rules.success(x, target, at_rest, self.success_tol, self.success_worst_tol)
         return {"marker_error": errors.mean(-1).float(), "worst_marker_error": errors.amax(-1).float(),
                 "at_rest": at_rest.float(), "is_success": ok.float(),
                 "frames": (torch.zeros_like(at_rest, dtype=torch.float32) if frames is None else frames.float())}
