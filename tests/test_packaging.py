@@ -76,9 +76,9 @@ def test_wheel_holds_every_module_the_params_and_the_kernel_source(installed_whe
     params = {f"diffdlo/_params/{p.name}" for p in (ROOT / "params").glob("*.yaml")}
     assert "diffdlo/_params/cable.yaml" in params and "diffdlo/_params/sac.yaml" in params
     assert params <= names, sorted(params - names)
-    csrc = ROOT / "diffdlo" / "planar" / "backends" / "csrc"
-    kernels = {f"diffdlo/planar/backends/csrc/{p.name}" for p in csrc.glob("*.cpp")}
-    assert "diffdlo/planar/backends/csrc/cable.cpp" in kernels and kernels <= names, sorted(kernels - names)
+    kernels = {str(p.relative_to(ROOT)) for p in (ROOT / "diffdlo").rglob("csrc/*.cpp")}
+    assert {"diffdlo/planar/backends/csrc/cable.cpp", "diffdlo/chain3d/csrc/chain3d.cpp"} <= kernels
+    assert kernels <= names, sorted(kernels - names)
     layouts = {f"diffdlo/tasks/layouts/{p.name}" for p in (ROOT / "diffdlo" / "tasks" / "layouts").glob("*.yaml")}
     assert "diffdlo/tasks/layouts/u_two_pegs.yaml" in layouts and layouts <= names, sorted(layouts - names)
 

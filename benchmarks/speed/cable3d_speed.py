@@ -1,7 +1,8 @@
-"""Speed of the 3-D two-gripper task (DiffDLO/Cable3D-v0, docs/CABLE3D.md) on the eager chain: env steps per second at
-several batch sizes (one step: the grippers' 1 s motion and the settle, here capped at ``--settle-time``), one
-CEM planning step (the planner's defaults), forward + backward through one move, and how long each cable takes to
-come to rest after a random move (the settle's share of a step).
+"""Speed of the 3-D two-gripper task (DiffDLO/Cable3D-v0, docs/CABLE3D.md), the fused C++ kernel against the eager
+chain in one run: env steps per second at several batch sizes (one step: the grippers' 1 s motion and the settle,
+capped at ``--settle-time``, the env's 5 s by default; the same seeds and actions on both engines), one CEM
+planning step (the planner's defaults), forward + backward through one move (the eager path: the kernel has no
+adjoint), and how long each cable takes to come to rest after a random move (the settle's share of a step).
 
     python benchmarks/speed/cable3d_speed.py                       # DLO3, B = 1 64 1024, float32, 2 threads
     python benchmarks/speed/cable3d_speed.py --batches 1 64 --cable DLO5 --dtype float64
@@ -15,24 +16,30 @@ import time
 import torch
 
 from diffdlo.chain3d import grippers as gr
+from diffdlo.chain3d import kernel
 from diffdlo.chain3d.cables import cable_names
 from diffdlo.envs.cable3d import BatchedCable3D
 from diffdlo.tasks import cable3d as rules
 
 
-def steps_per_second(cable: str, batch: int, dtype: torch.dtype, settle_time: float) -> float:
-    core = BatchedCable3D(batch, cable=cable, settle_time=settle_time, dtype=dtype)
+def steps_per_second(cable: str, batch: int, dtype: torch.dtype, settle_time: float, engine: str,
+                     min_seconds: float = 1.0) -> float:
+    """Env steps per second of B envs stepping random actions: as many batched steps as fill ``min_seconds``
+    (at least one), each from where the last left the cables."""
+    core = BatchedCable3D(batch, cable=cable, settle_time=settle_time, dtype=dtype, engine=engine)
     core.seed(list(range(batch)))
     core.reset()
-    actions = torch.rand(batch, rules.ACTION_DIM, generator=torch.Generator().manual_seed(0), dtype=dtype) * 2 - 1
-    t0 = time.perf_counter()
-    core.step(actions)
-    return batch / (time.perf_counter() - t0)
+    generator = torch.Generator().manual_seed(0)
+    steps, t0 = 0, time.perf_counter()
+    while steps == 0 or time.perf_counter() - t0 < min_seconds:
+        core.step(torch.rand(batch, rules.ACTION_DIM, generator=generator, dtype=dtype) * 2 - 1)
+        steps += 1
+    return steps * batch / (time.perf_counter() - t0)
 
 
-def planning_step(cable: str, dtype: torch.dtype) -> float:
+def planning_step(cable: str, dtype: torch.dtype, engine: str) -> float:
     from planners.cable3d import CEMPlanner
-    core = BatchedCable3D(1, cable=cable, dtype=dtype)
+    core = BatchedCable3D(1, cable=cable, dtype=dtype, engine=engine)
     core.seed([0])
     core.reset()
     planner = CEMPlanner(core)
@@ -71,20 +78,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
     ap.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--settle-time", type=float, default=1.0, help="[s] the settle's cap in the timed steps")
+    ap.add_argument("--settle-time", type=float, default=5.0, help="[s] the settle's cap in the timed steps (the "
+                    "env's default)")
     ap.add_argument("--rest", type=int, default=8, help="moves per cable for the rest times (0: skip)")
     args = ap.parse_args(argv)
     if min(args.batches) < 1 or args.threads < 1 or args.rest < 0:
         ap.error("--batches and --threads must be >= 1, --rest >= 0")
     torch.set_num_threads(args.threads)
     dtype = getattr(torch, args.dtype)
+    if not kernel.available():
+        print(f"the kernel is unavailable ({kernel.unavailable_reason()}): nothing to compare", file=sys.stderr)
+        return 1
     print(f"cable {args.cable}, {args.dtype}, {args.threads} threads, settle capped at {args.settle_time:g} s")
-    print("| B | env steps / s |\n|---|---|")
+    print("| B | kernel: env steps / s | eager: env steps / s | kernel / eager |\n|---|---|---|---|")
     for b in args.batches:
-        print(f"| {b} | {steps_per_second(args.cable, b, dtype, args.settle_time):.1f} |")
-    print(f"one CEM planning step (128 candidates x 5 iterations, horizon 1): {planning_step(args.cable, dtype):.2f} s")
+        fast, slow = (steps_per_second(args.cable, b, dtype, args.settle_time, e) for e in ("auto", "eager"))
+        print(f"| {b} | {fast:,.0f} | {slow:,.1f} | {fast / slow:.0f}x |")
+    fast, slow = (planning_step(args.cable, dtype, e) for e in ("auto", "eager"))
+    print(f"one CEM planning step (128 candidates x 5 iterations, horizon 1): kernel {fast:.3f} s, eager {slow:.2f} s "
+          f"({slow / fast:.0f}x)")
     forward, backward = backward_move(args.cable, dtype)
-    print(f"one move (1 s motion + 1 s settle), B = 1: forward {forward:.2f} s, backward {backward:.2f} s")
+    print(f"one move (1 s motion + 1 s settle), B = 1, eager with autograd: forward {forward:.2f} s, backward "
+          f"{backward:.2f} s")
     if args.rest:
         print("\n| cable | seconds to rest after a random move (< 1 cm/s): median / max |\n|---|---|")
         for name in cable_names():

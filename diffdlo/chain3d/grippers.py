@@ -10,7 +10,9 @@ moves straight, the direction turns about one fixed axis), then holds them while
 ``check_frames`` frames the free markers' fastest speed is compared with ``rest_speed``; a cable below it is at rest
 and frozen (batch members never influence each other), the others go on up to ``settle_frames`` frames (the cap).
 The chain is diffdlo/chain3d/chain.py's ``rollout`` (gravity, stretching, bending, drag, internal damping), so the
-whole move is differentiable with respect to the start state, the goal poses and the cable's parameters.
+whole move is differentiable with respect to the start state, the goal poses and the cable's parameters. Where no
+gradient is wanted (nothing requires grad, no ``accel``, on the CPU) ``engine="auto"`` runs the same move on the fused
+C++ kernel (diffdlo/chain3d/kernel.py), 30-100x faster; ``engine="eager"`` forces the torch path.
 Pure batched functions of tensors; device and dtype follow the state.
 """
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Callable, NamedTuple
 
 import torch
 
+from . import kernel
 from .cables import FRAME_DT, Cable
 from .chain import rollout
 
@@ -93,15 +96,36 @@ def _held_mask(cable: Cable, device: torch.device) -> torch.Tensor:
     return mask
 
 
+ENGINES = ("auto", "eager", "kernel")
+
+
+def _on_kernel(engine: str, x: torch.Tensor, tensors: list, cable: Cable, accel: Callable | None) -> bool:
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
+    if engine == "eager":
+        return False
+    ok = kernel.usable(x, tensors, cable.params, accel)
+    if engine == "kernel" and not ok:
+        raise ValueError("engine='kernel' needs the kernel built, a CPU float32/float64 state, no accel and no "
+                         f"gradient wanted (kernel: {kernel.unavailable_reason() or 'built'}, state {x.dtype} on "
+                         f"{x.device}, accel {'given' if accel is not None else 'None'})")
+    return ok
+
+
 def settle(x: torch.Tensor, v: torch.Tensor | None, grippers: Grippers, cable: Cable, *, rest_speed: float,
-           check_frames: int, settle_frames: int, accel: Callable | None = None) -> MoveResult:
+           check_frames: int, settle_frames: int, accel: Callable | None = None, engine: str = "auto"
+           ) -> MoveResult:
     """The cable held still by ``grippers`` until its free markers are slower than ``rest_speed`` [m/s] (checked
     every ``check_frames`` frames, at most ``settle_frames``); each cable frozen once at rest. ``accel``: an extra
     acceleration (x, v) -> (B, N, 3), e.g. a learned residual (diffdlo/chain3d/residual.py): chain.rollout's."""
     batch = x.shape[0]
+    held = held_markers(grippers, cable)
+    if _on_kernel(engine, x, [v, grippers.pos, grippers.dirs], cable, accel):
+        return MoveResult(*kernel.move(x, v, cable.held, held.unsqueeze(0), held, cable.params, cable.substeps,
+                                       frame_dt=FRAME_DT, rest_speed=rest_speed, check_frames=check_frames,
+                                       settle_frames=settle_frames))
     mask = _held_mask(cable, x.device)
     v = torch.zeros_like(x) if v is None else v
-    held = held_markers(grippers, cable)
     settled = torch.zeros(batch, dtype=torch.bool, device=x.device)
     frames = torch.zeros(batch, dtype=torch.int64, device=x.device)
     done = 0
@@ -120,13 +144,18 @@ def settle(x: torch.Tensor, v: torch.Tensor | None, grippers: Grippers, cable: C
 
 
 def move(x: torch.Tensor, v: torch.Tensor | None, goal: Grippers, cable: Cable, *, move_frames: int,
-         rest_speed: float, check_frames: int, settle_frames: int, accel: Callable | None = None) -> MoveResult:
+         rest_speed: float, check_frames: int, settle_frames: int, accel: Callable | None = None,
+         engine: str = "auto") -> MoveResult:
     """Both grippers from their poses in ``x`` (B, N, 3) to ``goal`` along the minimum-jerk path over
     ``move_frames`` frames, then held there while the cable comes to rest (``settle``; ``accel`` as there)."""
     mask = _held_mask(cable, x.device)
     path = gripper_path(poses_of(x), goal, cable, move_frames)
+    if _on_kernel(engine, x, [v, goal.pos, goal.dirs], cable, accel):
+        return MoveResult(*kernel.move(x, v, cable.held, path, held_markers(goal, cable), cable.params,
+                                       cable.substeps, frame_dt=FRAME_DT, rest_speed=rest_speed,
+                                       check_frames=check_frames, settle_frames=settle_frames))
     xs, vs = rollout(x, v, mask, path, cable.params, cable.substeps, frame_dt=FRAME_DT, return_velocities=True,
                      accel=accel)
     out = settle(xs[-1], vs[-1], goal, cable, rest_speed=rest_speed, check_frames=check_frames,
-                 settle_frames=settle_frames, accel=accel)
+                 settle_frames=settle_frames, accel=accel, engine="eager")
     return out._replace(frames=out.frames + move_frames)

@@ -30,12 +30,15 @@ class BatchedCable3D:
     ``chain3d.cables.Cable``, or None for the file's default; ``residual``: a diffdlo.chain3d.residual network
     trained on that cable, added to its physics: the stand-in for the real cable). ``move_time``, ``settle_time`` [s], ``rest_speed``
     [m/s]: a move's gripper motion, its settle's cap and rest threshold; ``success_tol``, ``success_worst_tol`` [m]:
-    the mean and worst marker error of a success; ``max_steps`` moves an episode. dtype float64 or float32."""
+    the mean and worst marker error of a success; ``max_steps`` moves an episode. dtype float64 or float32.
+    ``engine``: "auto" runs the moves on the fused C++ kernel where no gradient is wanted (grippers.move), "eager"
+    on the torch path (the reference; the two agree to rounding)."""
 
     def __init__(self, num_envs: int = 1, cable: str | Cable | None = None, target: str = "reachable",
                  max_steps: int = 20, move_time: float = 1.0, settle_time: float = 5.0, rest_speed: float = 0.01,
                  success_tol: float = 0.01, success_worst_tol: float = 0.02, success_bonus: float = 20.0,
-                 residual: Any = None, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float64):
+                 residual: Any = None, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float64,
+                 engine: str = "auto"):
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if target not in rules.TARGETS:
@@ -48,6 +51,9 @@ class BatchedCable3D:
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        if engine not in gr.ENGINES:
+            raise ValueError(f"engine must be one of {gr.ENGINES}, got {engine!r}")
+        self.engine = engine
         self.cable = cable if isinstance(cable, Cable) else load_cable(cable)
         if residual is not None:            # the stand-in for the real cable: the fitted physics + its residual
             config = getattr(residual, "config", None)
@@ -75,11 +81,12 @@ class BatchedCable3D:
     # ---------------------------------------------------------------- physics with the env's settings
     def move(self, x: torch.Tensor, goal: gr.Grippers, settle_frames: int | None = None) -> gr.MoveResult:
         return gr.move(x, None, goal, self.cable, move_frames=self.move_frames, rest_speed=self.rest_speed,
-                       check_frames=10, settle_frames=settle_frames or self.settle_frames, accel=self.residual)
+                       check_frames=10, settle_frames=settle_frames or self.settle_frames, accel=self.residual,
+                       engine=self.engine)
 
     def settle(self, x: torch.Tensor) -> gr.MoveResult:
         return gr.settle(x, None, gr.poses_of(x), self.cable, rest_speed=self.rest_speed, check_frames=10,
-                         settle_frames=self.settle_frames, accel=self.residual)
+                         settle_frames=self.settle_frames, accel=self.residual, engine=self.engine)
 
     # ---------------------------------------------------------------- episodes
     def seed(self, seeds: list[Any]) -> None:

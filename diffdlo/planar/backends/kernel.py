@@ -1,12 +1,9 @@
 """The fused C++ CPU kernel (diffdlo/planar/backends/csrc/cable.cpp): build on first use, call through ctypes, autograd
 wrapper.
 
-The kernel is plain C++ with a C ABI, so building it needs only a C++ compiler (g++ or c++ on PATH, or $CXX) and
-takes a few seconds; nothing from PyTorch's headers is compiled. The source is package data (read through
-``importlib.resources``, so an installed wheel builds it too). The shared library is cached in ``$DIFFDLO_CACHE``
-(default ``~/.cache/diffdlo``) under a hash of the source and flags. If no compiler is found or the build fails,
-``available()`` is False, the reason is in ``unavailable_reason()``, one ``KernelUnavailableWarning`` says so, and
-the simulator uses its pure-torch path.
+The kernel is plain C++ with a C ABI, built on first use by diffdlo/utils/native.py (a C++ compiler is all it needs;
+cached in ``$DIFFDLO_CACHE``). If no compiler is found or the build fails, ``available()`` is False, the reason is in
+``unavailable_reason()``, one ``KernelUnavailableWarning`` says so, and the simulator uses its pure-torch path.
 
 Per-rope physics (diffdlo.planar.physics.Physics) goes in as a (B, 4) float64 tensor of k_s, k_b, 1 / node_mass and the
 implicit damping factor 1 / (1 + dt k_d / node_mass) (``physics_columns``); the adjoint returns the gradient w.r.t.
@@ -22,24 +19,17 @@ gradient.
 from __future__ import annotations
 
 import ctypes
-import hashlib
-import os
-import shutil
-import subprocess
-import sys
-import tempfile
 import threading
 import warnings
 from importlib import resources
-from pathlib import Path
 from typing import NamedTuple
 
 import torch
 
+from ...utils import native
+
 SOURCE = resources.files(__package__) / "csrc" / "cable.cpp"
-# -march=native: the lane-group loops vectorize across ropes with the widest vectors this CPU has (the cache key
-# includes the CPU, so a cached build never runs on another model); -fno-math-errno lets sqrt vectorize.
-FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-std=c++17", "-fPIC", "-shared", "-pthread"]
+FLAGS = native.FLAGS
 
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
@@ -59,48 +49,11 @@ def _warn_unavailable(reason: str) -> None:
         f"`python -m diffdlo --info` shows the backend in use.", KernelUnavailableWarning)
 
 
-def _cache_dir() -> Path:
-    return Path(os.environ.get("DIFFDLO_CACHE", Path.home() / ".cache" / "diffdlo"))
-
-
-def _compiler() -> str | None:
-    for name in (os.environ.get("CXX"), "g++", "c++", "clang++"):
-        if name and shutil.which(name):
-            return name
-    return None
-
-
-def _cpu_id() -> str:
-    """The CPU model and feature flags (for -march=native builds), or the platform where /proc is absent."""
-    try:
-        info = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        import platform
-        return platform.processor() or platform.machine()
-    fields = [line for line in info.splitlines() if line.startswith(("model name", "flags"))][:2]
-    return "\n".join(fields)
+_compiler = native.find_compiler
 
 
 def _build() -> ctypes.CDLL:
-    compiler = _compiler()
-    if compiler is None:
-        raise RuntimeError("no C++ compiler found (set $CXX or install g++)")
-    source = SOURCE.read_bytes()
-    key = hashlib.sha256(source + " ".join([compiler, *FLAGS, sys.platform, _cpu_id()]).encode()).hexdigest()[:16]
-    target = _cache_dir() / f"cable-{key}.so"
-    if not target.exists():
-        target.parent.mkdir(parents=True, exist_ok=True)
-        print(f"diffdlo: compiling the C++ simulator kernel with {compiler} (first use only, a few seconds)...",
-              file=sys.stderr, flush=True)
-        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
-            src, out = Path(tmp) / SOURCE.name, Path(tmp) / target.name
-            src.write_bytes(source)     # a copy on disk for the compiler, wherever the package data lives
-            result = subprocess.run([compiler, *FLAGS, str(src), "-o", str(out)], capture_output=True, text=True)
-            if result.returncode != 0:
-                raise RuntimeError(f"{compiler} failed to build diffdlo/csrc/{SOURCE.name}:\n"
-                                   f"{result.stderr[-2000:]}")
-            os.replace(out, target)     # atomic: concurrent processes never load a half-written file
-    lib = ctypes.CDLL(str(target))
+    lib = native.build(SOURCE, "diffdlo/planar/backends/csrc/cable.cpp", "C++ simulator kernel", _compiler(), FLAGS)
     lib.diffdlo_lanes.restype = ctypes.c_int64
     ptr, i64 = ctypes.c_void_p, ctypes.c_int64
     for suffix in ("f32", "f64"):     # ..., phys, pegs, n_pegs, pin, ...

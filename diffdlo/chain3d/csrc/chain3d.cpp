@@ -1,0 +1,322 @@
+// Fused CPU kernel of the 3-D chain's gripper move, forward only: the grippers' path (diffdlo/chain3d/grippers.py
+// move), then the hold until the cable is at rest (grippers.py settle), each frame of the chain's semi-implicit Euler
+// substeps (diffdlo/chain3d/chain.py rollout and _forces: stretching, discrete bending, gravity, the floor, axial and
+// bending Kelvin-Voigt damping, the implicit drag). Plain C++ with a C ABI, called through ctypes on tensor data
+// (diffdlo/chain3d/kernel.py); the eager torch path is the reference and the test oracle, and this file mirrors it
+// step by step. Gradients are not computed here: a move that needs them runs the eager path, whose autograd carries
+// them (the planners' CEM and the env step need none).
+//
+// Chains run in lane groups of W: a group's state is laid out [node][axis][lane], so every inner loop runs over the
+// W lanes and vectorizes (16 floats = one AVX-512 vector). A batch that is not a multiple of W fills its last group
+// with copies of its last chain (computed, never returned). Groups run in parallel on a few std::threads taking
+// groups from an atomic counter (not OpenMP: its spinning idle threads would fight PyTorch's own runtime). A group
+// steps until all its lanes are at rest or at the cap; a lane's state is copied out when it comes to rest (as the
+// eager settle freezes it), so a lane never depends on the others.
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <thread>
+#include <vector>
+
+namespace {
+
+constexpr int W = 16;
+constexpr double TINY = 1e-12;    // chain.py _TINY: below this sin(theta) a node's bending plane is undefined
+
+template <typename F>
+void parallel_for(int64_t count, int64_t threads, F body) {
+  const int64_t workers = std::max<int64_t>(1, std::min(threads, count));
+  if (workers == 1) {
+    for (int64_t i = 0; i < count; ++i) body(i);
+    return;
+  }
+  std::atomic<int64_t> next{0};
+  auto work = [&]() {
+    for (int64_t i = next.fetch_add(1); i < count; i = next.fetch_add(1)) body(i);
+  };
+  std::vector<std::thread> pool;
+  for (int64_t t = 1; t < workers; ++t) pool.emplace_back(work);
+  work();
+  for (auto& t : pool) t.join();
+}
+
+// ip[] from Python, in this order. path_frames = move frames + 1 (1: a settle alone).
+struct Ints {
+  int64_t B, n, n_held, substeps, path_frames, check_frames, settle_frames, threads;
+};
+// fp[] from Python, in this order.
+struct Reals {
+  double frame_dt, rest_speed, divergence_radius;
+};
+// Per chain, phys[b] holds (N-1) rest lengths, N masses, N drag coefficients c_d lambda_j, then these 9 scalars.
+enum Scalar { EI, EA, AXIAL, BENDING, GRAVITY, FLOOR_Z, FLOOR_K, FLOOR_C, FLOOR_W, N_SCALARS };
+
+inline int64_t phys_width(int64_t n) { return (n - 1) + 2 * n + N_SCALARS; }
+
+template <typename T>
+struct Group {
+  int64_t n;
+  std::vector<T> x, v, f, g;                 // [node][axis][lane]: positions, velocities, forces; g: per link
+  std::vector<T> rest, voronoi, h_over_m, damp, weight;    // [link or node][lane]
+  std::vector<T> s;                          // [scalar][lane]
+  std::vector<T> start, end, hold;           // [held][axis][lane]: this frame's path, the settle's hold
+  explicit Group(int64_t n_, int64_t n_held)
+      : n(n_), x(n_ * 3 * W), v(n_ * 3 * W), f(n_ * 3 * W), g(n_ * 3 * W), rest((n_ - 1) * W),
+        voronoi((n_ - 2) * W), h_over_m(n_ * W), damp(n_ * W), weight(n_ * W), s(N_SCALARS * W),
+        start(n_held * 3 * W), end(n_held * 3 * W), hold(n_held * 3 * W) {}
+  T* at(std::vector<T>& a, int64_t j, int d) { return a.data() + (j * 3 + d) * W; }
+};
+
+// One substep of every lane: F(x, v) without the drag, then v+ = (v + h F / m) / (1 + h c_d lambda / m),
+// x+ = x + h v+ (chain.py rollout), then the held nodes put on the path at alpha of the frame.
+template <typename T>
+void substep(Group<T>& G, const int64_t* held, int64_t n_held, T h, T alpha, const T* vh) {
+  const int64_t n = G.n;
+  std::fill(G.g.begin(), G.g.end(), T(0));
+  T* s = G.s.data();
+  const T* ei = s + EI * W; const T* ea = s + EA * W; const T* eta_a = s + AXIAL * W; const T* eta_b = s + BENDING * W;
+  // links: the stretching gradient and the axial damping's dR/d(de/dt), into g[k]
+  std::vector<T>& x = G.x; std::vector<T>& v = G.v;
+  for (int64_t k = 0; k < n - 1; ++k) {
+    T* gx = G.at(G.g, k, 0); T* gy = G.at(G.g, k, 1); T* gz = G.at(G.g, k, 2);
+    const T* x0 = G.at(x, k, 0); const T* y0 = G.at(x, k, 1); const T* z0 = G.at(x, k, 2);
+    const T* x1 = G.at(x, k + 1, 0); const T* y1 = G.at(x, k + 1, 1); const T* z1 = G.at(x, k + 1, 2);
+    const T* vx0 = G.at(v, k, 0); const T* vy0 = G.at(v, k, 1); const T* vz0 = G.at(v, k, 2);
+    const T* vx1 = G.at(v, k + 1, 0); const T* vy1 = G.at(v, k + 1, 1); const T* vz1 = G.at(v, k + 1, 2);
+    const T* r = G.rest.data() + k * W;
+    for (int l = 0; l < W; ++l) {
+      const T ex = x1[l] - x0[l], ey = y1[l] - y0[l], ez = z1[l] - z0[l];
+      const T L = std::sqrt(ex * ex + ey * ey + ez * ez);
+      const T nx = ex / L, ny = ey / L, nz = ez / L;
+      const T rate = nx * (vx1[l] - vx0[l]) + ny * (vy1[l] - vy0[l]) + nz * (vz1[l] - vz0[l]);
+      const T coef = ea[l] / r[l] * (L - r[l]) + eta_a[l] / r[l] * rate;
+      gx[l] = coef * nx; gy[l] = coef * ny; gz[l] = coef * nz;
+    }
+  }
+  // interior nodes i + 1 (links a = i, b = i + 1): bending's dE/de and the bending damping's dR/d(de/dt)
+  for (int64_t i = 0; i < n - 2; ++i) {
+    const T* D = G.voronoi.data() + i * W;
+    T* __restrict gax = G.at(G.g, i, 0); T* __restrict gay = G.at(G.g, i, 1); T* __restrict gaz = G.at(G.g, i, 2);
+    T* __restrict gbx = G.at(G.g, i + 1, 0); T* __restrict gby = G.at(G.g, i + 1, 1);
+    T* __restrict gbz = G.at(G.g, i + 1, 2);
+    const T* x0 = G.at(x, i, 0); const T* y0 = G.at(x, i, 1); const T* z0 = G.at(x, i, 2);
+    const T* x1 = G.at(x, i + 1, 0); const T* y1 = G.at(x, i + 1, 1); const T* z1 = G.at(x, i + 1, 2);
+    const T* x2 = G.at(x, i + 2, 0); const T* y2 = G.at(x, i + 2, 1); const T* z2 = G.at(x, i + 2, 2);
+    const T* u0 = G.at(v, i, 0); const T* w0 = G.at(v, i, 1); const T* q0 = G.at(v, i, 2);
+    const T* u1 = G.at(v, i + 1, 0); const T* w1 = G.at(v, i + 1, 1); const T* q1 = G.at(v, i + 1, 2);
+    const T* u2 = G.at(v, i + 2, 0); const T* w2 = G.at(v, i + 2, 1); const T* q2 = G.at(v, i + 2, 2);
+#pragma GCC ivdep
+    for (int l = 0; l < W; ++l) {
+      T ax = x1[l] - x0[l], ay = y1[l] - y0[l], az = z1[l] - z0[l];         // link a = i, b = i + 1
+      T bx = x2[l] - x1[l], by = y2[l] - y1[l], bz = z2[l] - z1[l];
+      const T rax = u1[l] - u0[l], ray = w1[l] - w0[l], raz = q1[l] - q0[l];  // their rates
+      const T rbx = u2[l] - u1[l], rby = w2[l] - w1[l], rbz = q2[l] - q1[l];
+      const T la = std::sqrt(ax * ax + ay * ay + az * az);
+      const T lb = std::sqrt(bx * bx + by * by + bz * bz);
+      ax /= la; ay /= la; az /= la;
+      bx /= lb; by /= lb; bz /= lb;
+      const T c = ax * bx + ay * by + az * bz;
+      const T pax = bx - c * ax, pay = by - c * ay, paz = bz - c * az;      // b^ - c a^ (_|_ a)
+      const T pbx = ax - c * bx, pby = ay - c * by, pbz = az - c * bz;      // a^ - c b^ (_|_ b)
+      const T one_c = T(1) + c;
+      const T dE_dc = -T(4) * ei[l] / (D[l] * one_c * one_c);
+      // bending damping: the unit normals in the links' plane (zero where the links are parallel)
+      const T na2 = pax * pax + pay * pay + paz * paz;
+      const T nb2 = pbx * pbx + pby * pby + pbz * pbz;
+      const T tiny2 = T(TINY * TINY);
+      const T ia = na2 > tiny2 ? T(1) / std::sqrt(std::max(na2, tiny2)) : T(0);
+      const T ib = nb2 > tiny2 ? T(1) / std::sqrt(std::max(nb2, tiny2)) : T(0);
+      const T tax = pax * ia / la, tay = pay * ia / la, taz = paz * ia / la;
+      const T tbx = pbx * ib / lb, tby = pby * ib / lb, tbz = pbz * ib / lb;
+      const T ds = T(2) / one_c;
+      const T bend_rate = -ds * (tax * rax + tay * ray + taz * raz + tbx * rbx + tby * rby + tbz * rbz);
+      const T scale = -eta_b[l] / D[l] * bend_rate * ds;
+      gax[l] += dE_dc * pax / la + scale * tax;
+      gay[l] += dE_dc * pay / la + scale * tay;
+      gaz[l] += dE_dc * paz / la + scale * taz;
+      gbx[l] += dE_dc * pbx / lb + scale * tbx;
+      gby[l] += dE_dc * pby / lb + scale * tby;
+      gbz[l] += dE_dc * pbz / lb + scale * tbz;
+    }
+  }
+  // nodes: F_j = g_j - g_{j-1} (chain.py _to_nodes), minus the weight, the floor's push and its dashpot
+  const T* zf = s + FLOOR_Z * W; const T* kf = s + FLOOR_K * W; const T* cf = s + FLOOR_C * W;
+  const T* wf = s + FLOOR_W * W;
+  for (int64_t j = 0; j < n; ++j) {
+    const T* hm = G.h_over_m.data() + j * W; const T* dp = G.damp.data() + j * W;
+    const T* wt = G.weight.data() + j * W;
+    for (int d = 0; d < 3; ++d) {
+      T* vd = G.at(v, j, d);
+      const T* gj = j < n - 1 ? G.at(G.g, j, d) : nullptr;
+      const T* gp = j > 0 ? G.at(G.g, j - 1, d) : nullptr;
+      const T* z = G.at(x, j, 2); const T* vz = G.at(v, j, 2);
+      for (int l = 0; l < W; ++l) {
+        T F = (gj ? gj[l] : T(0)) - (gp ? gp[l] : T(0));
+        if (d == 2) {
+          const T zp = std::max(zf[l] - z[l], T(0));
+          const bool ramp = zp < wf[l];
+          const T push = ramp ? zp * zp / (T(2) * wf[l]) : zp - T(0.5) * wf[l];
+          const T onset = ramp ? zp / wf[l] : T(1);
+          F -= wt[l] - kf[l] * push + cf[l] * onset * vz[l];
+        }
+        vd[l] = (vd[l] + hm[l] * F) * dp[l];
+      }
+    }
+    for (int d = 0; d < 3; ++d) {
+      T* xd = G.at(x, j, d); const T* vd = G.at(v, j, d);
+      for (int l = 0; l < W; ++l) xd[l] += h * vd[l];
+    }
+  }
+  for (int64_t q = 0; q < n_held; ++q) {
+    for (int d = 0; d < 3; ++d) {
+      T* xd = G.at(x, held[q], d); T* vd = G.at(v, held[q], d);
+      const T* a = G.start.data() + (q * 3 + d) * W; const T* b = G.end.data() + (q * 3 + d) * W;
+      const T* u = vh + (q * 3 + d) * W;
+      for (int l = 0; l < W; ++l) { xd[l] = (T(1) - alpha) * a[l] + alpha * b[l]; vd[l] = u[l]; }
+    }
+  }
+}
+
+template <typename T>
+void run_group(const Ints& in, const Reals& re, int64_t group, const int64_t* held, const T* x0, const T* v0,
+               const T* path, const T* hold, const T* phys, T* x_out, T* v_out, uint8_t* settled, int64_t* frames,
+               int64_t* diverged) {
+  const int64_t n = in.n, H = in.n_held, B = in.B;
+  Group<T> G(n, H);
+  int64_t lane_b[W];
+  for (int l = 0; l < W; ++l) lane_b[l] = std::min(group * W + l, B - 1);
+  const T h = T(re.frame_dt / in.substeps);
+  const T dt = T(re.frame_dt);
+  const int64_t P = phys_width(n);
+  for (int l = 0; l < W; ++l) {
+    const T* p = phys + lane_b[l] * P;
+    for (int64_t k = 0; k < n - 1; ++k) G.rest[k * W + l] = p[k];
+    for (int64_t i = 0; i < n - 2; ++i) G.voronoi[i * W + l] = T(0.5) * (p[i] + p[i + 1]);
+    const T* mass = p + (n - 1); const T* drag = mass + n; const T* sc = drag + n;
+    for (int64_t j = 0; j < n; ++j) {
+      G.h_over_m[j * W + l] = h / mass[j];
+      G.damp[j * W + l] = T(1) / (T(1) + h * drag[j] / mass[j]);
+      G.weight[j * W + l] = mass[j] * sc[GRAVITY];
+    }
+    for (int q = 0; q < N_SCALARS; ++q) G.s[q * W + l] = sc[q];
+    for (int64_t j = 0; j < n; ++j)
+      for (int d = 0; d < 3; ++d) {
+        G.x[(j * 3 + d) * W + l] = x0[(lane_b[l] * n + j) * 3 + d];
+        G.v[(j * 3 + d) * W + l] = v0 ? v0[(lane_b[l] * n + j) * 3 + d] : T(0);
+      }
+    for (int64_t q = 0; q < H; ++q)
+      for (int d = 0; d < 3; ++d) G.hold[(q * 3 + d) * W + l] = hold[(lane_b[l] * H + q) * 3 + d];
+  }
+  // the path's frame k of lane l's chain into dst [held][axis][lane]
+  auto path_frame = [&](int64_t k, std::vector<T>& dst) {
+    for (int l = 0; l < W; ++l)
+      for (int64_t q = 0; q < H; ++q)
+        for (int d = 0; d < 3; ++d) dst[(q * 3 + d) * W + l] = path[((k * B + lane_b[l]) * H + q) * 3 + d];
+  };
+  std::vector<T> vh(H * 3 * W, T(0));
+  bool done[W], diverged_lane[W];
+  for (int l = 0; l < W; ++l) { done[l] = false; diverged_lane[l] = false; }
+  auto finish = [&](int l, bool at_rest, int64_t frame) {
+    done[l] = true;
+    const int64_t b = group * W + l;
+    if (b >= B) return;
+    for (int64_t j = 0; j < n; ++j)
+      for (int d = 0; d < 3; ++d) {
+        x_out[(b * n + j) * 3 + d] = G.x[(j * 3 + d) * W + l];
+        v_out[(b * n + j) * 3 + d] = G.v[(j * 3 + d) * W + l];
+      }
+    settled[b] = at_rest;
+    frames[b] = frame;
+  };
+  // frame 0: the held nodes on the path's first frame, with its first velocity
+  path_frame(0, G.start);
+  if (in.path_frames > 1) path_frame(1, G.end); else G.end = G.start;
+  for (int64_t q = 0; q < H; ++q)
+    for (int d = 0; d < 3; ++d)
+      for (int l = 0; l < W; ++l) {
+        const int64_t o = (q * 3 + d) * W + l;
+        G.x[(held[q] * 3 + d) * W + l] = G.start[o];
+        G.v[(held[q] * 3 + d) * W + l] = in.path_frames > 1 ? (G.end[o] - G.start[o]) / dt : T(0);
+      }
+  const int64_t move_frames = in.path_frames - 1;
+  const int64_t last = move_frames + in.settle_frames;
+  const T radius = T(re.divergence_radius);
+  for (int64_t k = 1; k <= last; ++k) {
+    if (k <= move_frames) { path_frame(k - 1, G.start); path_frame(k, G.end); }
+    else { G.start = G.hold; G.end = G.hold; }
+    for (int64_t q = 0; q < H; ++q)
+      for (int d = 0; d < 3; ++d)
+        for (int l = 0; l < W; ++l) {
+          const int64_t o = (q * 3 + d) * W + l;
+          vh[o] = (G.end[o] - G.start[o]) / dt;
+          G.v[(held[q] * 3 + d) * W + l] = vh[o];
+          G.x[(held[q] * 3 + d) * W + l] = G.start[o];    // (1 - 0) start + 0 end: where the last substep left it
+        }
+    for (int64_t s = 1; s <= in.substeps; ++s)
+      substep(G, held, H, h, T(double(s) / double(in.substeps)), vh.data());
+    // a non-finite or runaway state: report the frame, stop the lane
+    for (int l = 0; l < W; ++l) {
+      if (done[l]) continue;
+      bool bad = false;
+      for (int64_t j = 0; j < n; ++j)
+        for (int d = 0; d < 3; ++d) {
+          const T value = G.x[(j * 3 + d) * W + l];
+          bad = bad || !std::isfinite(value) || std::abs(value) > radius;
+        }
+      if (bad) {
+        diverged_lane[l] = true;
+        if (group * W + l < B) diverged[group * W + l] = k;
+        finish(l, false, k);
+      }
+    }
+    const int64_t into_settle = k - move_frames;
+    if (into_settle >= 1 && (into_settle % in.check_frames == 0 || k == last)) {
+      // grippers.py settle: at rest when the free nodes' fastest speed is below rest_speed
+      for (int l = 0; l < W; ++l) {
+        if (done[l]) continue;
+        T fastest = T(0);
+        for (int64_t j = 0, q = 0; j < n; ++j) {
+          if (q < H && held[q] == j) { ++q; continue; }
+          T sq = T(0);
+          for (int d = 0; d < 3; ++d) { const T u = G.v[(j * 3 + d) * W + l]; sq += u * u; }
+          fastest = std::max(fastest, std::sqrt(sq));
+        }
+        if (fastest < T(re.rest_speed)) finish(l, true, k);
+        else if (k == last) finish(l, false, k);
+      }
+    }
+    bool all = true;
+    for (int l = 0; l < W; ++l) all = all && done[l];
+    if (all) break;
+  }
+  for (int l = 0; l < W; ++l)     // no settle at all (settle_frames = 0): the move's end, not at rest
+    if (!done[l]) finish(l, false, last);
+}
+
+template <typename T>
+void move(const double* fp, const int64_t* ip, const int64_t* held, const T* x0, const T* v0, const T* path,
+          const T* hold, const T* phys, T* x_out, T* v_out, uint8_t* settled, int64_t* frames, int64_t* diverged) {
+  const Ints in{ip[0], ip[1], ip[2], ip[3], ip[4], ip[5], ip[6], ip[7]};
+  const Reals re{fp[0], fp[1], fp[2]};
+  const int64_t groups = (in.B + W - 1) / W;
+  parallel_for(groups, in.threads, [&](int64_t g) {
+    run_group<T>(in, re, g, held, x0, v0, path, hold, phys, x_out, v_out, settled, frames, diverged);
+  });
+}
+
+}  // namespace
+
+extern "C" {
+int64_t chain3d_lanes() { return W; }
+void chain3d_move_f32(const double* fp, const int64_t* ip, const int64_t* held, const float* x0, const float* v0,
+                      const float* path, const float* hold, const float* phys, float* x_out, float* v_out,
+                      uint8_t* settled, int64_t* frames, int64_t* diverged) {
+  move<float>(fp, ip, held, x0, v0, path, hold, phys, x_out, v_out, settled, frames, diverged);
+}
+void chain3d_move_f64(const double* fp, const int64_t* ip, const int64_t* held, const double* x0, const double* v0,
+                      const double* path, const double* hold, const double* phys, double* x_out, double* v_out,
+                      uint8_t* settled, int64_t* frames, int64_t* diverged) {
+  move<double>(fp, ip, held, x0, v0, path, hold, phys, x_out, v_out, settled, frames, diverged);
+}
+}

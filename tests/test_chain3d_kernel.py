@@ -1,0 +1,135 @@
+"""The fused C++ kernel of the 3-D chain's gripper move (diffdlo/chain3d/kernel.py) against the eager chain, its
+reference: the same moves, settles, rest frames and refusals; where it is not used (gradients, a residual) and what
+happens without a compiler."""
+import dataclasses
+import warnings
+
+import pytest
+import torch
+
+import diffdlo
+from diffdlo.chain3d import grippers as gr
+from diffdlo.chain3d import kernel
+from diffdlo.chain3d.cables import load_cable
+from diffdlo.chain3d.chain import ChainDivergedError
+from diffdlo.envs.cable3d import BatchedCable3D
+from diffdlo.tasks import cable3d as rules
+
+pytestmark = pytest.mark.skipif(not kernel.available(), reason="no C++ compiler: the kernel is not built")
+SETTLE = {"rest_speed": 0.01, "check_frames": 10}
+
+
+def start_and_goal(cable, batch, dtype, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    start = rules.random_grippers(batch, cable, generator, dtype)
+    x = gr.settle(rules.hang(start, cable).to(dtype), None, start, cable, settle_frames=500, **SETTLE).x   # a start
+    action = (torch.rand(batch, rules.ACTION_DIM, generator=generator, dtype=torch.float64) * 2 - 1).to(dtype)
+    return x, rules.decode_action(action, gr.poses_of(x), cable)
+
+
+def with_floor_and_own_stiffness(cable, batch):
+    """The cable over a floor its hanging middle reaches, each chain of the batch with its own EI."""
+    ei = float(cable.params.EI) * torch.linspace(0.5, 2.0, batch, dtype=torch.float64)
+    params = dataclasses.replace(cable.params, EI=ei, floor_height=0.30, floor_stiffness=50.0, floor_damping=0.5,
+                                 floor_width=2e-3)
+    return dataclasses.replace(cable, params=params)
+
+
+@pytest.mark.parametrize("name, batch", [("DLO3", 1), ("DLO3", 19), ("DLO5", 17)])
+def test_the_kernel_moves_and_settles_as_the_eager_chain(name, batch):
+    """float64: positions and velocities to rounding, the same frames and the same rest verdicts; a batch that is
+    not a whole number of lane groups included (DLO5: the softest cable, 13 substeps)."""
+    cable = load_cable(name)
+    x, goal = start_and_goal(cable, batch, torch.float64)
+    runs = {e: gr.move(x, None, goal, cable, move_frames=60, settle_frames=150, engine=e, **SETTLE)
+            for e in ("eager", "kernel")}
+    eager, fast = runs["eager"], runs["kernel"]
+    assert torch.allclose(fast.x, eager.x, rtol=0, atol=1e-12)
+    assert torch.allclose(fast.v, eager.v, rtol=0, atol=1e-10)
+    assert torch.equal(fast.frames, eager.frames) and torch.equal(fast.settled, eager.settled)
+    assert bool(eager.settled.any()) and bool((eager.frames > 60).all())     # the settle ran and some came to rest
+    settled = {e: gr.settle(x, None, gr.poses_of(x), cable, settle_frames=40, engine=e, **SETTLE)
+               for e in ("eager", "kernel")}
+    assert torch.allclose(settled["kernel"].x, settled["eager"].x, rtol=0, atol=1e-12)
+    assert torch.equal(settled["kernel"].frames, settled["eager"].frames)
+
+
+def test_the_kernel_has_the_floor_and_per_chain_parameters_of_the_eager_chain():
+    cable = with_floor_and_own_stiffness(load_cable("DLO2"), 20)
+    x, goal = start_and_goal(cable, 20, torch.float64, seed=3)
+    eager, fast = (gr.move(x, None, goal, cable, move_frames=50, settle_frames=60, engine=e, **SETTLE)
+                   for e in ("eager", "kernel"))
+    assert float(eager.x[..., 2].min()) < 0.30                                # the floor was reached
+    assert torch.allclose(fast.x, eager.x, rtol=0, atol=1e-11)
+    assert torch.equal(fast.frames, eager.frames)
+
+
+def test_float32_stays_within_micrometres_of_float64():
+    cable = load_cable("DLO3")
+    x, goal = start_and_goal(cable, 16, torch.float64, seed=1)
+    exact = gr.move(x, None, goal, cable, move_frames=100, settle_frames=100, engine="kernel", **SETTLE)
+    single = gr.move(x.float(), None, gr.Grippers(goal.pos.float(), goal.dirs.float()), cable, move_frames=100,
+                     settle_frames=100, engine="kernel", **SETTLE)
+    assert single.x.dtype == torch.float32
+    assert float((single.x.double() - exact.x).abs().max()) < 1e-5
+
+
+def test_a_gradient_or_a_residual_takes_the_eager_path_and_kernel_refuses_them():
+    cable = load_cable("DLO3")
+    x, goal = start_and_goal(cable, 2, torch.float64)
+    shift = torch.zeros(2, 2, 3, dtype=torch.float64, requires_grad=True)
+    wanted = gr.Grippers(goal.pos + shift, goal.dirs)
+    out = gr.move(x, None, wanted, cable, move_frames=20, settle_frames=10, **SETTLE)       # auto: eager
+    out.x.sum().backward()
+    assert shift.grad is not None and float(shift.grad.abs().sum()) > 0
+    with pytest.raises(ValueError, match="engine='kernel' needs .*no gradient wanted"):
+        gr.move(x, None, wanted, cable, move_frames=20, settle_frames=10, engine="kernel", **SETTLE)
+    with pytest.raises(ValueError, match="accel given"):
+        gr.move(x, None, goal, cable, move_frames=20, settle_frames=10, engine="kernel",
+                accel=lambda x, v: torch.zeros_like(x), **SETTLE)
+    with pytest.raises(ValueError, match="engine must be one of .*'fast'"):
+        gr.move(x, None, goal, cable, move_frames=20, settle_frames=10, engine="fast", **SETTLE)
+    with torch.no_grad():                                                      # no gradient wanted: the kernel runs
+        assert gr.move(x, None, wanted, cable, move_frames=20, settle_frames=10, engine="kernel", **SETTLE) \
+            .x.shape == x.shape
+
+
+def test_a_diverging_chain_is_reported_with_its_member_and_frame():
+    cable = load_cable("DLO3")
+    unstable = dataclasses.replace(cable, substeps=1)
+    x, goal = start_and_goal(cable, 3, torch.float64)
+    with pytest.raises(ChainDivergedError, match=r"batch members \[0, 1, 2\] at frame \d+ of the move"):
+        gr.move(x, None, goal, unstable, move_frames=20, settle_frames=10, engine="kernel", **SETTLE)
+    with pytest.raises(ChainDivergedError):                                   # as the eager chain does
+        gr.move(x, None, goal, unstable, move_frames=20, settle_frames=10, engine="eager", **SETTLE)
+
+
+def test_env_episodes_are_the_same_on_both_engines():
+    envs = {e: BatchedCable3D(3, cable="DLO3", move_time=0.3, settle_time=0.5, engine=e) for e in ("auto", "eager")}
+    for env in envs.values():
+        env.seed([0, 1, 2])
+        env.reset()
+    actions = torch.rand(2, 3, rules.ACTION_DIM, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    for a in actions * 2 - 1:
+        (_, r_fast, *_), (_, r_slow, *_) = (env.step(a) for env in envs.values())
+        assert torch.allclose(r_fast, r_slow, atol=1e-9)
+    assert torch.allclose(envs["auto"].x, envs["eager"].x, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="engine must be one of"):
+        BatchedCable3D(1, engine="triton")
+
+
+def test_without_a_compiler_one_warning_then_the_eager_path(monkeypatch, tmp_path):
+    cable = load_cable("DLO3")
+    x, goal = start_and_goal(cable, 1, torch.float64)
+    monkeypatch.setattr(kernel, "_lib", None)
+    monkeypatch.setattr(kernel, "_error", None)
+    monkeypatch.setenv("DIFFDLO_CACHE", str(tmp_path))
+    monkeypatch.setattr(kernel, "_compiler", lambda: None)
+    with pytest.warns(diffdlo.KernelUnavailableWarning, match=r"(?s)3-D chain is unavailable \(no C\+\+ compiler"):
+        out = gr.move(x, None, goal, cable, move_frames=10, settle_frames=10, **SETTLE)
+    assert out.x.shape == x.shape
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", diffdlo.KernelUnavailableWarning)
+        gr.move(x, None, goal, cable, move_frames=10, settle_frames=10, **SETTLE)
+    with pytest.raises(ValueError, match="no C\\+\\+ compiler"):
+        gr.move(x, None, goal, cable, move_frames=10, settle_frames=10, engine="kernel", **SETTLE)
