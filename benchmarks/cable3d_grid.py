@@ -4,10 +4,13 @@
     python -m benchmarks.cable3d_grid --run --out runs/cable3d20 --cables DLO3 DLO1 &   # or two at once, one core
     python -m benchmarks.cable3d_grid --run --out runs/cable3d20 --cables DLO2 DLO4 DLO5  # each
     python -m benchmarks.cable3d_grid --collect runs/cable3d20 --record docs/results/cable3d_cem_grid.json
+    python -m benchmarks.cable3d_grid --run --out runs/standin20 --cables DLO3 --tag closed-physics \
+        -- --stand-in runs/real_cable_residual/DLO3_residual.pt     # flags after -- go to every cell's planner
 
 ``--run`` runs ``python -m planners.cable3d`` once per cable and seed (seed s: the episodes reset with seeds
 1000 s ... 1000 s + episodes - 1, so no two seeds share an episode), each cell in its own folder
-OUT/<planner>-<cable>-s<s>, a cell with a results.json already there skipped (run it again to finish a grid).
+OUT/<tag>-<cable>-s<s> (the tag: ``--tag``, by default the planner's name), a cell with a results.json already
+there skipped (run it again to finish a grid).
 ``--collect`` reads the cells, prints the table (success, moves to success, final error, planning time) and writes
 the record (per cell: its success, moves and errors per episode; no shapes) where ``--record`` says.
 """
@@ -23,19 +26,20 @@ from diffdlo.chain3d.cables import cable_names
 from diffdlo.utils.files import write_json_atomic
 
 
-def cell(out: Path, planner: str, cable: str, seed: int) -> Path:
-    return out / f"{planner}-{cable}-s{seed}"
+def cell(out: Path, tag: str, cable: str, seed: int) -> Path:
+    return out / f"{tag}-{cable}-s{seed}"
 
 
-def run(out: Path, planner: str, cables: list[str], seeds: list[int], episodes: int, threads: int = 1) -> int:
+def run(out: Path, planner: str, cables: list[str], seeds: list[int], episodes: int, threads: int = 1,
+        tag: str | None = None, flags: list[str] = ()) -> int:
     for cable in cables:
         for s in seeds:
-            folder = cell(out, planner, cable, s)
+            folder = cell(out, tag or planner, cable, s)
             if (folder / "results.json").is_file():
                 continue
             argv = [sys.executable, "-m", "planners.cable3d", "--planner", planner, "--cable", cable,
                     "--episodes", str(episodes), "--seed", str(1000 * s), "--threads", str(threads),
-                    "--out", str(folder), "--overwrite", "--quiet"]
+                    "--out", str(folder), "--overwrite", "--quiet", *flags]
             code = subprocess.run(argv).returncode
             if code:
                 return code
@@ -50,14 +54,15 @@ def collect(out: Path, record: Path | None) -> int:
     rows: dict[str, list[dict]] = {}
     for folder in cells:
         d = json.loads((folder / "results.json").read_text())
-        key = f"{d['planner']} {d['cable']}"
+        tag = folder.name.rsplit(f"-{d['cable']}-s", 1)[0]
+        key = f"{tag} {d['cable']}"
         rows.setdefault(key, []).append({
             "cell": folder.name, "argv": d["argv"], "options": d.get("options"),
             "plan_seconds_per_move": d["plan_seconds_per_move"], "sim_moves_per_episode": d["sim_moves_per_episode"],
             "episodes": [{"seed": e["seed"], "success": e["success"], "steps": e["steps"],
                           "final_error_cm": round(100 * e["errors"][-1], 3),
                           "final_worst_error_cm": round(100 * e["worst_errors"][-1], 3)} for e in d["episode_records"]]})
-    print("| planner, cable | seeds x episodes | success | moves to success (mean) | final mean error [cm] "
+    print("| cell, cable | seeds x episodes | success | moves to success (mean) | final mean error [cm] "
           "(median / max) | planning s / move |\n|---|---|---|---|---|---|")
     for key, seeds in rows.items():
         eps = [e for s in seeds for e in s["episodes"]]
@@ -84,16 +89,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cables", nargs="+", default=cable_names(), choices=cable_names())
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--episodes", type=int, default=20)
+    ap.add_argument("--tag", default=None, help="the cells' name (default: the planner's)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of each cell (run two grids side by side "
                                                            "on two cores, each on its own --cables)")
-    args = ap.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    flags = argv[argv.index("--") + 1:] if "--" in argv else []
+    args = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    if flags and not args.run:
+        ap.error(f"planner flags after -- need --run, got {flags}")
     if args.run == (args.collect is not None):
         ap.error("give one of --run or --collect DIR")
     if args.episodes < 1 or min(args.seeds) < 0 or args.threads < 1:
         ap.error(f"--episodes and --threads must be >= 1 and --seeds >= 0, got {args.episodes}, {args.threads} and "
                  f"{args.seeds}")
     if args.run:
-        return run(args.out, args.planner, args.cables, args.seeds, args.episodes, args.threads)
+        return run(args.out, args.planner, args.cables, args.seeds, args.episodes, args.threads, args.tag, flags)
     return collect(args.collect, args.record)
 
 

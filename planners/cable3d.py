@@ -9,10 +9,12 @@ The planner's chain is the env's cable unless told otherwise: ``--model-cable`` 
 ``--stand-in`` makes the env's cable the fitted physics plus its learned residual (the stand-in for the real cable)
 while the planner plans with physics alone (``--plan-with stand-in``: with the stand-in itself), ``--open-loop``
 plans a whole sequence once and executes it blind. ``--plan-settle`` [s] caps the planner's settle (cheaper, a cable
-not quite at rest) where the env's own move settles up to ``--settle-time``.
+not quite at rest) where the env's own move settles up to ``--settle-time``. ``--target recorded --data DIR``: the
+targets are shapes DEFORM's real cable took (diffdlo/tasks/cable3d.py).
 
     python -m planners.cable3d --cable DLO3 --episodes 5 --out runs/cable3d-cem
     python -m planners.cable3d --planner gradient --cable DLO3 --episodes 5 --out runs/cable3d-gradient
+    python -m planners.cable3d --cable DLO3 --target recorded --data DEFORM/data_set --out runs/cable3d-recorded
 """
 from __future__ import annotations
 
@@ -199,6 +201,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iterations", type=int, default=5, help="cem: iterations per move")
     ap.add_argument("--starts", type=int, default=8, help="gradient: first guesses optimised together")
     ap.add_argument("--steps", type=int, default=12, help="gradient: Adam steps per move")
+    ap.add_argument("--target", choices=rules.TARGETS, default="reachable",
+                    help="reachable: a shape the model reaches by two random moves; recorded (with --data): a shape "
+                         "the real cable took in DEFORM's eval recordings")
+    ap.add_argument("--data", type=Path, default=None, help="DEFORM's data_set folder (for --target recorded)")
     ap.add_argument("--model-cable", default=None, help="the planner's cable (default: --cable's): a parameter "
                                                          "mismatch, planned with one cable's fit, run on another's")
     ap.add_argument("--stand-in", type=Path, default=None,
@@ -233,7 +239,11 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--open-loop plans a whole sequence: --planner cem")
         settings = dict(max_steps=args.max_steps, move_time=args.move_time, settle_time=args.settle_time,
                         dtype=getattr(torch, args.dtype))
-        core = BatchedCable3D(1, cable=args.cable, residual=residual, **settings)
+        if (args.target == "recorded") != (args.data is not None):
+            raise ValueError(f"--data goes with --target recorded and only with it, got --target {args.target} and "
+                             f"--data {args.data}")
+        core = BatchedCable3D(1, cable=args.cable, residual=residual, target=args.target, data=args.data,
+                              **settings)
         model_cable = args.model_cable or args.cable
         model = core if model_cable == args.cable and (residual is None or args.plan_with == "stand-in") else \
             BatchedCable3D(1, cable=model_cable, residual=residual if args.plan_with == "stand-in" else None,
@@ -265,7 +275,8 @@ def main(argv: list[str] | None = None) -> int:
             solved = [e for e in episodes if e["success"]]
             summary = {"planner": args.planner, "cable": core.cable.name, "model_cable": model.cable.name,
                        "stand_in": None if args.stand_in is None else str(args.stand_in),
-                       "plan_with": args.plan_with, "open_loop": args.open_loop, "episodes": len(episodes),
+                       "plan_with": args.plan_with, "open_loop": args.open_loop, "target": args.target,
+                       "episodes": len(episodes),
                        "success_rate": len(solved) / len(episodes),
                        "mean_moves_to_success": (sum(e["steps"] for e in solved) / len(solved)) if solved else None,
                        "plan_seconds_per_move": sum(e["plan_seconds_per_move"] for e in episodes) / len(episodes),

@@ -1,6 +1,7 @@
 """The 3-D two-gripper task (issue 69, a first step): the cables' parameter files, the grippers' move on the chain
 (held markers on their path, at rest at the end, gradients against finite differences), the task's rules on
 hand-made states, and the env (gymnasium's and SB3's checkers, the native vector env, seeding). No recordings."""
+import dataclasses
 import math
 
 import gymnasium as gym
@@ -298,3 +299,60 @@ def test_the_grid_collects_its_cells_and_skips_finished_ones(tmp_path, capsys):
     assert "| cem DLO3 | 2 x 2 | 75 % | 2.0 | 0.80 / 2.00 | 2.0 |" in out
     record = json.loads((tmp_path / "record.json").read_text())
     assert len(record["rows"]["cem DLO3"]) == 2
+
+
+def fake_recordings(folder, cable, n_recordings=2, frames=300, seed=0):
+    """DEFORM-format eval recordings of ``cable``: the markers swept from one hung shape to another along a
+    minimum-jerk path, so the slowest frames are known (near both ends) and every frame's grippers are in reach."""
+    import pickle
+    generator = torch.Generator().manual_seed(seed)
+    folder.mkdir(parents=True)
+    for r in range(n_recordings):
+        a, b = (rules.hang(rules.random_grippers(1, cable, generator, F64), cable)[0] for _ in range(2))
+        s = gr.min_jerk(torch.linspace(0, 1, frames, dtype=F64)).view(-1, 1, 1)
+        x = a + s * (b - a)                                                   # (T, N, 3)
+        (folder / f"{r + 1}.pkl").write_bytes(pickle.dumps(x.transpose(1, 2).tolist()))
+
+
+def test_recorded_targets_are_the_slowest_frames_and_starts_come_from_the_same_recording(tmp_path):
+    cable = load_cable("DLO3")
+    fake_recordings(tmp_path / "DLO3" / "eval", cable)
+    recorded = rules.recorded_targets(tmp_path, cable)
+    assert len(recorded.targets) == 2 * rules.RECORDED_PER_RECORDING
+    for (r, k), speed in zip(recorded.targets, recorded.speeds):
+        assert 1 <= k < 299 and speed > 0
+    first = [k for r, k in recorded.targets if r == 0]
+    assert sorted(first[:2]) == [1, 298]                                      # the path's two slow ends first
+    assert recorded.speeds[:2] == sorted(recorded.speeds[:5])[:2]
+    assert all(abs(i - j) >= rules.RECORDED_GAP for i in first for j in first if i != j)
+    env = BatchedCable3D(3, cable=cable, target="recorded", data=tmp_path, **FAST)
+    env.seed([0, 1, 2])
+    env.reset()
+    for i in range(3):                                  # each target is a recorded frame, its start another of the same
+        hits = [(r, k) for r, k in recorded.targets if torch.equal(recorded.recordings[r][k], env.target[i])]
+        assert len(hits) == 1
+        r, k = hits[0]
+        start = gr.poses_of(env.x[i:i + 1]).pos[0]
+        frames = recorded.recordings[r][:, [0, -1]]
+        j = int((frames - start).norm(dim=-1).amax(-1).argmin())
+        assert float((frames[j] - start).norm(dim=-1).max()) < 1e-9 and abs(j - k) >= rules.START_GAP
+    with pytest.raises(ValueError, match="data .* goes with target='recorded'"):
+        BatchedCable3D(1, cable=cable, target="recorded")
+    with pytest.raises(ValueError, match="recorded targets need one of DEFORM's cables .* 'short'"):
+        rules.recorded_targets(tmp_path, dataclasses.replace(cable, name="short"))
+    with pytest.raises(ValueError, match="DLO5/eval: no such folder"):
+        rules.recorded_targets(tmp_path, load_cable("DLO5"))
+
+
+def test_the_planners_command_plans_towards_recorded_shapes_and_wants_data_with_them(tmp_path, capsys):
+    from planners.cable3d import main
+    fake_recordings(tmp_path / "data" / "DLO3" / "eval", load_cable("DLO3"))
+    assert main(["--target", "recorded", "--data", str(tmp_path / "data"), "--move-time", "0.2", "--settle-time",
+                 "0.3", "--plan-settle", "0.2", "--candidates", "8", "--elites", "2", "--iterations", "1",
+                 "--max-steps", "1", "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    import json
+    assert json.loads((tmp_path / "run" / "results.json").read_text())["target"] == "recorded"
+    for argv in (["--target", "recorded"], ["--data", str(tmp_path / "data")]):
+        with pytest.raises(SystemExit):
+            main(argv + ["--out", str(tmp_path / "never")])
+        assert "--data goes with --target recorded and only with it" in capsys.readouterr().err

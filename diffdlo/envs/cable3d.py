@@ -31,6 +31,7 @@ class BatchedCable3D:
     trained on that cable, added to its physics: the stand-in for the real cable). ``move_time``, ``settle_time`` [s], ``rest_speed``
     [m/s]: a move's gripper motion, its settle's cap and rest threshold; ``success_tol``, ``success_worst_tol`` [m]:
     the mean and worst marker error of a success; ``max_steps`` moves an episode. dtype float64 or float32.
+    ``target`` "reachable", or "recorded" with ``data`` DEFORM's data_set folder (tasks/cable3d.py's rules).
     ``engine``: "auto" runs the moves on the fused C++ kernel where no gradient is wanted (grippers.move), "eager"
     on the torch path (the reference; the two agree to rounding)."""
 
@@ -38,7 +39,7 @@ class BatchedCable3D:
                  max_steps: int = 20, move_time: float = 1.0, settle_time: float = 5.0, rest_speed: float = 0.01,
                  success_tol: float = 0.01, success_worst_tol: float = 0.02, success_bonus: float = 20.0,
                  residual: Any = None, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float64,
-                 engine: str = "auto"):
+                 engine: str = "auto", data: Any = None):
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if target not in rules.TARGETS:
@@ -55,6 +56,10 @@ class BatchedCable3D:
             raise ValueError(f"engine must be one of {gr.ENGINES}, got {engine!r}")
         self.engine = engine
         self.cable = cable if isinstance(cable, Cable) else load_cable(cable)
+        if (target == "recorded") != (data is not None):
+            raise ValueError(f"data (DEFORM's data_set folder) goes with target='recorded' and only with it, got "
+                             f"target={target!r} and data={data!r}")
+        self.recorded = rules.recorded_targets(data, self.cable) if data is not None else None
         if residual is not None:            # the stand-in for the real cable: the fitted physics + its residual
             config = getattr(residual, "config", None)
             if config is None or config.n != self.cable.n_nodes or tuple(config.held) != self.cable.held:
@@ -103,12 +108,18 @@ class BatchedCable3D:
         ids = [i for i in range(self.num_envs) if mask is None or bool(mask[i])]
         if ids:
             with torch.no_grad():
-                poses = [rules.random_grippers(1, self.cable, self.generators[i], self.dtype) for i in ids]
+                if self.recorded is not None:           # a frame of a recording as the start's grippers, another
+                    drawn = [self.recorded.draw(self.generators[i]) for i in ids]
+                    poses = [gr.poses_of(start[None].to(self.dtype)) for start, _ in drawn]
+                else:
+                    poses = [rules.random_grippers(1, self.cable, self.generators[i], self.dtype) for i in ids]
                 start = gr.Grippers(torch.cat([p.pos for p in poses]).to(self.device),
                                     torch.cat([p.dirs for p in poses]).to(self.device))
                 settled = self.settle(rules.hang(start, self.cable))
                 x, target = settled.x, settled.x
-                for _ in range(rules.REACH_MOVES):
+                if self.recorded is not None:
+                    target = torch.stack([t for _, t in drawn]).to(x)
+                for _ in range(rules.REACH_MOVES if self.recorded is None else 0):
                     a = torch.cat([torch.rand(1, rules.ACTION_DIM, generator=self.generators[i],
                                               dtype=torch.float64) * 2 - 1 for i in ids]).to(x)
                     target = self.move(target, rules.decode_action(a, gr.poses_of(target), self.cable)).x

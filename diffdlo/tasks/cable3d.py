@@ -12,7 +12,10 @@ held at both ends by two grippers, brought to a target shape by moves of both gr
   random horizontal heading, their ends pointing down (tilted up to START_TILT), as DEFORM's robots hold the cables;
   the cable hung between them in a vertical parabola of its own length, then left to come to rest.
 - **Target** "reachable": the markers where the model itself takes the start by ``REACH_MOVES`` random actions: a shape
-  every cable can reach, always solvable. (Recorded shapes of the real cables: not yet.)
+  every cable can reach, always solvable. "recorded" (with DEFORM's recordings, ``recorded_targets``): a shape the
+  real cable took, one of the ``RECORDED_PER_RECORDING`` slowest frames of each eval recording (the real cables are
+  never at rest there: these frames' fastest free marker moves at 2-50 cm/s), its grippers within reach; the start
+  hung at the grippers' poses of another frame of the same recording, at least ``START_GAP`` frames away.
 - **Success**: at rest, the markers' mean distance to the target's under ``success_tol`` (1 cm) and the worst under
   ``success_worst_tol`` (2 cm). **Reward**: 100 x (mean marker error before - after) [cm], ``success_bonus`` on
   success (the planar task's shape_gain and bonus).
@@ -27,6 +30,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from ..chain3d import deform
 from ..chain3d.cables import FRAME_DT, Cable
 from ..chain3d.grippers import Grippers, held_markers, poses_of, rotate, unit
 
@@ -40,7 +44,10 @@ MAX_SPAN = 0.9            # the end markers at most this share of the cable's ma
 SPAN_RANGE = (0.3, 0.6)   # a start's end markers this share of that length apart
 START_TILT = 0.3          # [rad] at most between a start's end directions and straight down
 REACH_MOVES = 2           # random actions from the start to a "reachable" target
-TARGETS = ("reachable",)
+TARGETS = ("reachable", "recorded")
+RECORDED_PER_RECORDING = 5  # "recorded" targets: the slowest frames of each eval recording ...
+RECORDED_GAP = 50           # ... at least this many frames (0.5 s) apart
+START_GAP = 100             # a recorded target's start: a frame of its recording at least 1 s away
 OBS_KEYS = ("markers", "grippers", "target_markers")
 
 
@@ -123,6 +130,55 @@ def hang(grippers: Grippers, cable: Cable) -> torch.Tensor:
     pick = lambda i: curve.gather(1, i.unsqueeze(-1).expand(-1, -1, 3))
     inner = pick(index - 1) + share * (pick(index) - pick(index - 1))
     return torch.cat([held[:, :2], inner, held[:, 2:]], 1)
+
+
+class RecordedTargets:
+    """DEFORM's eval recordings of one cable as targets: ``recordings`` [(T, N, 3)], ``targets`` [(recording, frame)],
+    ``speeds`` [m/s] (each target frame's fastest free marker, central differences) and ``reachable`` [[bool] per
+    frame] (the frame's grippers within reach)."""
+
+    def __init__(self, recordings: list[torch.Tensor], targets: list[tuple[int, int]], speeds: list[float],
+                 reachable: list[list[bool]]):
+        self.recordings, self.targets, self.speeds, self.reachable = recordings, targets, speeds, reachable
+
+    def draw(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """(start frame's markers, target markers) (N, 3) of one drawn target: the start a frame of the same
+        recording at least START_GAP frames from the target's, its grippers within reach."""
+        r, k = self.targets[int(torch.randint(len(self.targets), (1,), generator=generator))]
+        frames = self.recordings[r]
+        far = [j for j in range(frames.shape[0]) if abs(j - k) >= START_GAP and self.reachable[r][j]]
+        return frames[far[int(torch.randint(len(far), (1,), generator=generator))]], frames[k]
+
+
+def recorded_targets(data_dir, cable: Cable) -> RecordedTargets:
+    """The "recorded" targets of ``cable`` (one of DEFORM's, DLO1-5) from DEFORM's data_set folder ``data_dir``:
+    each eval recording's RECORDED_PER_RECORDING slowest frames RECORDED_GAP apart whose grippers are within reach
+    (in WORKSPACE and at most MAX_SPAN apart, to 1 mm) and that have a start frame in reach. ValueError naming the
+    cable or the folder where there are none; deform.RecordingError for bad recordings."""
+    number = {c.name: k for k, c in deform.CABLES.items()}.get(cable.name)
+    if number is None:
+        raise ValueError(f"recorded targets need one of DEFORM's cables {[c.name for c in deform.CABLES.values()]}, "
+                         f"got cable {cable.name!r}")
+    recordings = [x for _, x in sorted(deform.load_split(data_dir, number, "eval").items())]
+    free = [j for j in range(cable.n_nodes) if j not in cable.held]
+    targets, speeds, reach = [], [], []
+    for r, x in enumerate(recordings):
+        ends = x[:, [0, -1]]
+        reach.append(((keep_reachable(ends, cable) - ends).norm(dim=-1).amax(-1) < 1e-3).tolist())
+        speed = torch.full((x.shape[0],), math.inf, dtype=x.dtype)
+        speed[1:-1] = ((x[2:] - x[:-2]) / (2 * deform.DT))[:, free].norm(dim=-1).amax(-1)
+        chosen: list[int] = []
+        for k in speed.argsort().tolist():
+            if len(chosen) == RECORDED_PER_RECORDING or not math.isfinite(float(speed[k])):
+                break
+            if (reach[r][k] and all(abs(k - j) >= RECORDED_GAP for j in chosen)
+                    and any(reach[r][j] for j in range(x.shape[0]) if abs(j - k) >= START_GAP)):
+                chosen.append(k)
+        targets += [(r, k) for k in chosen]
+        speeds += [float(speed[k]) for k in chosen]
+    if not targets:
+        raise ValueError(f"{data_dir}: no eval frame of {cable.name} has its grippers within reach")
+    return RecordedTargets(recordings, targets, speeds, reach)
 
 
 def marker_errors(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
