@@ -1,6 +1,6 @@
-"""The fused C++ kernel of the 3-D chain's gripper move (diffdlo/chain3d/kernel.py) against the eager chain, its
-reference: the same moves, settles, rest frames and refusals; where it is not used (gradients, a residual) and what
-happens without a compiler."""
+"""The fused C++ kernel of the 3-D chain's gripper move and its adjoint (diffdlo/chain3d/kernel.py) against the eager
+chain, its reference: the same moves, settles, rest frames, gradients and refusals; gradcheck of the adjoint; where
+it is not used (parameters' gradients, a residual) and what happens without a compiler."""
 import dataclasses
 import warnings
 
@@ -74,23 +74,63 @@ def test_float32_stays_within_micrometres_of_float64():
     assert float((single.x.double() - exact.x).abs().max()) < 1e-5
 
 
-def test_a_gradient_or_a_residual_takes_the_eager_path_and_kernel_refuses_them():
+def test_the_kernels_gradients_are_the_eager_chains():
+    """float64, chains stopping at different frames (the settle's rest check), a floor, per-chain EI, a start moving:
+    the gradients w.r.t. the action (through the path and the hold), the start positions and velocities agree."""
+    cable = with_floor_and_own_stiffness(load_cable("DLO2"), 12)
+    x, _ = start_and_goal(cable, 12, torch.float64, seed=3)
+    generator = torch.Generator().manual_seed(4)
+    action = torch.rand(12, rules.ACTION_DIM, generator=generator, dtype=torch.float64) * 2 - 1
+    v0 = 0.02 * torch.randn(x.shape, generator=generator, dtype=torch.float64)
+    weights = torch.randn(2, *x.shape, generator=generator, dtype=torch.float64)
+    grads = {}
+    for engine in ("eager", "kernel"):
+        inputs = [t.clone().requires_grad_(True) for t in (action, x, v0)]
+        goal = rules.decode_action(inputs[0], gr.poses_of(inputs[1]), cable)
+        out = gr.move(inputs[1], inputs[2], goal, cable, move_frames=30, settle_frames=150, engine=engine,
+                      rest_speed=0.02, check_frames=10)
+        ((weights[0] * out.x).sum() + (weights[1] * out.v).sum()).backward()
+        grads[engine] = [t.grad for t in inputs] + [out.frames]
+    assert len(set(grads["eager"][3].tolist())) > 3                         # the chains stopped at different frames
+    assert torch.equal(grads["kernel"][3], grads["eager"][3])
+    for fast, slow in zip(grads["kernel"][:3], grads["eager"][:3]):
+        assert torch.allclose(fast, slow, rtol=1e-9, atol=1e-12 * float(slow.abs().max()))
+
+
+def test_the_kernels_adjoint_passes_gradcheck():
+    """float64 central differences of the kernel's own move (a settle capped, so the stop frames stay put) against
+    its adjoint: start positions and velocities, every frame of the grippers' path and the hold."""
+    cable = load_cable("DLO3")
+    x, goal = start_and_goal(cable, 2, torch.float64, seed=5)
+    path = gr.gripper_path(gr.poses_of(x), goal, cable, 4)
+    hold = gr.held_markers(goal, cable)
+    v0 = 0.01 * torch.ones_like(x)
+
+    def run(x, v, path, hold):
+        out = kernel.move(x, v, cable.held, path, hold, cable.params, cable.substeps, frame_dt=0.01,
+                          rest_speed=1e-9, check_frames=10, settle_frames=3)
+        return out[0], out[1]
+    inputs = [t.clone().requires_grad_(True) for t in (x, v0, path, hold)]
+    assert torch.autograd.gradcheck(run, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_parameters_wanting_gradients_or_a_residual_take_the_eager_path_and_kernel_refuses_them():
     cable = load_cable("DLO3")
     x, goal = start_and_goal(cable, 2, torch.float64)
-    shift = torch.zeros(2, 2, 3, dtype=torch.float64, requires_grad=True)
-    wanted = gr.Grippers(goal.pos + shift, goal.dirs)
-    out = gr.move(x, None, wanted, cable, move_frames=20, settle_frames=10, **SETTLE)       # auto: eager
+    ei = torch.tensor(float(cable.params.EI), dtype=torch.float64, requires_grad=True)
+    fitted = dataclasses.replace(cable, params=dataclasses.replace(cable.params, EI=ei))
+    out = gr.move(x, None, goal, fitted, move_frames=20, settle_frames=10, **SETTLE)       # auto: eager
     out.x.sum().backward()
-    assert shift.grad is not None and float(shift.grad.abs().sum()) > 0
-    with pytest.raises(ValueError, match="engine='kernel' needs .*no gradient wanted"):
-        gr.move(x, None, wanted, cable, move_frames=20, settle_frames=10, engine="kernel", **SETTLE)
+    assert ei.grad is not None and float(ei.grad.abs()) > 0
+    with pytest.raises(ValueError, match="engine='kernel' needs .*parameters requiring grad: True"):
+        gr.move(x, None, goal, fitted, move_frames=20, settle_frames=10, engine="kernel", **SETTLE)
     with pytest.raises(ValueError, match="accel given"):
         gr.move(x, None, goal, cable, move_frames=20, settle_frames=10, engine="kernel",
                 accel=lambda x, v: torch.zeros_like(x), **SETTLE)
     with pytest.raises(ValueError, match="engine must be one of .*'fast'"):
         gr.move(x, None, goal, cable, move_frames=20, settle_frames=10, engine="fast", **SETTLE)
-    with torch.no_grad():                                                      # no gradient wanted: the kernel runs
-        assert gr.move(x, None, wanted, cable, move_frames=20, settle_frames=10, engine="kernel", **SETTLE) \
+    with torch.no_grad():                                             # no gradient wanted: the kernel runs
+        assert gr.move(x, None, goal, fitted, move_frames=20, settle_frames=10, engine="kernel", **SETTLE) \
             .x.shape == x.shape
 
 

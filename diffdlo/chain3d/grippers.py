@@ -10,9 +10,10 @@ moves straight, the direction turns about one fixed axis), then holds them while
 ``check_frames`` frames the free markers' fastest speed is compared with ``rest_speed``; a cable below it is at rest
 and frozen (batch members never influence each other), the others go on up to ``settle_frames`` frames (the cap).
 The chain is diffdlo/chain3d/chain.py's ``rollout`` (gravity, stretching, bending, drag, internal damping), so the
-whole move is differentiable with respect to the start state, the goal poses and the cable's parameters. Where no
-gradient is wanted (nothing requires grad, no ``accel``, on the CPU) ``engine="auto"`` runs the same move on the fused
-C++ kernel (diffdlo/chain3d/kernel.py), 30-100x faster; ``engine="eager"`` forces the torch path.
+whole move is differentiable with respect to the start state, the goal poses and the cable's parameters. On the CPU,
+without ``accel`` and with no gradient wanted w.r.t. the cable's parameters, ``engine="auto"`` runs the same move on
+the fused C++ kernel and its adjoint (diffdlo/chain3d/kernel.py), 30-100x faster; ``engine="eager"`` forces the
+torch path.
 Pure batched functions of tensors; device and dtype follow the state.
 """
 from __future__ import annotations
@@ -99,16 +100,18 @@ def _held_mask(cable: Cable, device: torch.device) -> torch.Tensor:
 ENGINES = ("auto", "eager", "kernel")
 
 
-def _on_kernel(engine: str, x: torch.Tensor, tensors: list, cable: Cable, accel: Callable | None) -> bool:
+def _on_kernel(engine: str, x: torch.Tensor, cable: Cable, accel: Callable | None) -> bool:
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
     if engine == "eager":
         return False
-    ok = kernel.usable(x, tensors, cable.params, accel)
+    ok = kernel.usable(x, cable.params, accel)
     if engine == "kernel" and not ok:
         raise ValueError("engine='kernel' needs the kernel built, a CPU float32/float64 state, no accel and no "
-                         f"gradient wanted (kernel: {kernel.unavailable_reason() or 'built'}, state {x.dtype} on "
-                         f"{x.device}, accel {'given' if accel is not None else 'None'})")
+                         f"gradient wanted w.r.t. the cable's parameters (kernel: "
+                         f"{kernel.unavailable_reason() or 'built'}, state {x.dtype} on {x.device}, accel "
+                         f"{'given' if accel is not None else 'None'}, parameters requiring grad: "
+                         f"{torch.is_grad_enabled() and kernel.params_need_grad(cable.params)})")
     return ok
 
 
@@ -120,7 +123,7 @@ def settle(x: torch.Tensor, v: torch.Tensor | None, grippers: Grippers, cable: C
     acceleration (x, v) -> (B, N, 3), e.g. a learned residual (diffdlo/chain3d/residual.py): chain.rollout's."""
     batch = x.shape[0]
     held = held_markers(grippers, cable)
-    if _on_kernel(engine, x, [v, grippers.pos, grippers.dirs], cable, accel):
+    if _on_kernel(engine, x, cable, accel):
         return MoveResult(*kernel.move(x, v, cable.held, held.unsqueeze(0), held, cable.params, cable.substeps,
                                        frame_dt=FRAME_DT, rest_speed=rest_speed, check_frames=check_frames,
                                        settle_frames=settle_frames))
@@ -150,7 +153,7 @@ def move(x: torch.Tensor, v: torch.Tensor | None, goal: Grippers, cable: Cable, 
     ``move_frames`` frames, then held there while the cable comes to rest (``settle``; ``accel`` as there)."""
     mask = _held_mask(cable, x.device)
     path = gripper_path(poses_of(x), goal, cable, move_frames)
-    if _on_kernel(engine, x, [v, goal.pos, goal.dirs], cable, accel):
+    if _on_kernel(engine, x, cable, accel):
         return MoveResult(*kernel.move(x, v, cable.held, path, held_markers(goal, cable), cable.params,
                                        cable.substeps, frame_dt=FRAME_DT, rest_speed=rest_speed,
                                        check_frames=check_frames, settle_frames=settle_frames))

@@ -1,12 +1,13 @@
-"""The fused C++ CPU kernel of the grippers' move on the 3-D chain (diffdlo/chain3d/csrc/chain3d.cpp), forward only:
-built on first use (diffdlo/utils/native.py), called through ctypes.
+"""The fused C++ CPU kernel of the grippers' move on the 3-D chain (diffdlo/chain3d/csrc/chain3d.cpp) and its
+adjoint: built on first use (diffdlo/utils/native.py), called through ctypes, wrapped as an autograd Function whose
+gradient flows to the start state (x, v) and the grippers' path and hold (so on to their goal poses).
 
-``grippers.move`` and ``grippers.settle`` run it where nothing needs a gradient (``usable``): on the CPU, float32 or
-float64, no tensor of the state, the goal or the cable's parameters requiring grad, no extra acceleration (the
-learned residual is a torch network). Everything else (the gradient planner, the stand-in's residual, CUDA) runs
-the eager path of diffdlo/chain3d/chain.py, which is the reference: the kernel mirrors it step by step and the tests
-hold the two together. If no compiler is found or the build fails, one ``KernelUnavailableWarning`` says so and the
-eager path runs.
+``grippers.move`` and ``grippers.settle`` run it where it applies (``usable``): on the CPU, float32 or float64, no
+parameter of the cable requiring grad (the kernel has no gradient for them) and no extra acceleration (the learned
+residual is a torch network). Everything else (a fit of the parameters, the stand-in's residual, CUDA) runs the eager
+path of diffdlo/chain3d/chain.py, which is the reference: the kernel mirrors it step by step and the tests hold the
+two together, values and gradients. If no compiler is found or the build fails, one ``KernelUnavailableWarning``
+says so and the eager path runs.
 """
 from __future__ import annotations
 
@@ -36,9 +37,10 @@ def _build() -> ctypes.CDLL:
     lib = native.build(SOURCE, "diffdlo/chain3d/csrc/chain3d.cpp", "C++ kernel of the 3-D chain", _compiler())
     lib.chain3d_lanes.restype = ctypes.c_int64
     for suffix in ("f32", "f64"):
-        fn = getattr(lib, f"chain3d_move_{suffix}")
-        fn.argtypes = [ctypes.c_void_p] * 13
-        fn.restype = None
+        for name, count in (("move", 13), ("backward", 15)):
+            fn = getattr(lib, f"chain3d_{name}_{suffix}")
+            fn.argtypes = [ctypes.c_void_p] * count
+            fn.restype = None
     return lib
 
 
@@ -69,17 +71,17 @@ def unavailable_reason() -> str | None:
     return _error
 
 
-def _needs_grad(params: ChainParams, tensors: list[Any]) -> bool:
-    fields = [getattr(params, f.name) for f in params.__dataclass_fields__.values()]
-    return any(torch.is_tensor(t) and t.requires_grad for t in tensors + fields)
+def params_need_grad(params: ChainParams) -> bool:
+    return any(torch.is_tensor(getattr(params, f)) and getattr(params, f).requires_grad
+               for f in params.__dataclass_fields__)
 
 
-def usable(x: torch.Tensor, tensors: list[Any], params: ChainParams, accel: Callable | None) -> bool:
-    """Whether a move of state ``x`` can run on the kernel: CPU, float32/64, no gradient wanted through ``tensors``
-    (the state, the goal) or ``params``, no ``accel``, and the kernel built."""
+def usable(x: torch.Tensor, params: ChainParams, accel: Callable | None) -> bool:
+    """Whether a move of state ``x`` can run on the kernel: CPU, float32/64, no gradient wanted w.r.t. ``params``,
+    no ``accel``, and the kernel built."""
     if accel is not None or x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
         return False
-    if torch.is_grad_enabled() and _needs_grad(params, [x, *tensors]):
+    if torch.is_grad_enabled() and params_need_grad(params):
         return False
     return available()
 
@@ -101,38 +103,70 @@ def _physics(params: ChainParams, x: torch.Tensor) -> torch.Tensor:
     return torch.cat(columns, 1).contiguous()
 
 
+class _Call:
+    """One move's constants as the kernel takes them."""
+
+    def __init__(self, x: torch.Tensor, held: tuple[int, ...], path: torch.Tensor, params: ChainParams,
+                 substeps: int, frame_dt: float, rest_speed: float, check_frames: int, settle_frames: int,
+                 threads: int | None):
+        batch, n = x.shape[:2]
+        self.held = torch.tensor(held, dtype=torch.int64)
+        self.phys = _physics(params, x.detach())
+        self.fp = torch.tensor([frame_dt, rest_speed, DIVERGENCE_RADIUS], dtype=torch.float64)
+        self.ip = torch.tensor([batch, n, len(held), substeps, path.shape[0], check_frames, settle_frames,
+                                threads or torch.get_num_threads()], dtype=torch.int64)
+        self.frame_dt, self.substeps, self.suffix = frame_dt, substeps, "f32" if x.dtype == torch.float32 else "f64"
+
+
+def _ptrs(*tensors: torch.Tensor | None) -> list[ctypes.c_void_p | None]:
+    return [None if t is None else ctypes.c_void_p(t.data_ptr()) for t in tensors]
+
+
+class _Move(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x0, v0, path, hold, call: _Call):
+        batch = x0.shape[0]
+        x_out, v_out = torch.empty_like(x0), torch.empty_like(x0)
+        settled = torch.zeros(batch, dtype=torch.uint8)
+        frames = torch.zeros(batch, dtype=torch.int64)
+        diverged = torch.full((batch,), -1, dtype=torch.int64)
+        getattr(_load(), f"chain3d_move_{call.suffix}")(*_ptrs(call.fp, call.ip, call.held, x0, v0, path, hold,
+                                                               call.phys, x_out, v_out, settled, frames, diverged))
+        if bool((diverged >= 0).any()):
+            ids = (diverged >= 0).nonzero().flatten().tolist()
+            frame = int(diverged[ids[0]])
+            raise ChainDivergedError(
+                f"the chain diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for batch members {ids} at "
+                f"frame {frame} of the move (t = {frame * call.frame_dt:.4g} s, {path.shape[0] - 1} frames of "
+                f"gripper motion) with substeps of {call.frame_dt / call.substeps:.3g} s: use more substeps")
+        ctx.save_for_backward(x0, v0 if v0 is not None else x0.new_zeros(0), path, hold, frames)
+        ctx.call, ctx.has_v0 = call, v0 is not None
+        ctx.mark_non_differentiable(settled, frames)
+        return x_out, v_out, settled.bool(), frames
+
+    @staticmethod
+    def backward(ctx, gx, gv, _settled, _frames):
+        x0, v0, path, hold, frames = ctx.saved_tensors
+        call = ctx.call
+        gx = torch.zeros_like(x0) if gx is None else gx.contiguous()
+        gv = torch.zeros_like(x0) if gv is None else gv.contiguous()
+        gx0, gv0 = torch.empty_like(x0), torch.empty_like(x0)
+        gpath, ghold = torch.empty_like(path), torch.empty_like(hold)
+        getattr(_load(), f"chain3d_backward_{call.suffix}")(*_ptrs(
+            call.fp, call.ip, call.held, x0, v0 if ctx.has_v0 else None, path, hold, call.phys, frames, gx, gv,
+            gx0, gv0, gpath, ghold))
+        return gx0, gv0 if ctx.has_v0 else None, gpath, ghold, None
+
+
 def move(x: torch.Tensor, v: torch.Tensor | None, held: tuple[int, ...], path: torch.Tensor, hold: torch.Tensor,
          params: ChainParams, substeps: int, *, frame_dt: float, rest_speed: float, check_frames: int,
          settle_frames: int, threads: int | None = None
          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The held nodes along ``path`` (P, B, H, 3) (frame 0 the start, P - 1 move frames; P = 1: none), then at
     ``hold`` (B, H, 3) until the free nodes are slower than ``rest_speed`` (checked every ``check_frames`` frames,
-    at most ``settle_frames``). Returns (x, v, settled, frames) as grippers.MoveResult's fields. ChainDivergedError
-    for a chain that runs away, naming it and the frame."""
-    lib = _load()
-    batch, n = x.shape[:2]
+    at most ``settle_frames``). Returns (x, v, settled, frames) as grippers.MoveResult's fields, differentiable
+    w.r.t. x, v, path and hold. ChainDivergedError for a chain that runs away, naming it and the frame."""
     dtype = x.dtype
-    x0 = x.detach().contiguous()
-    v0 = None if v is None else v.detach().to(dtype).contiguous()
-    path = path.detach().to(dtype).contiguous()
-    hold = hold.detach().to(dtype).contiguous()
-    held_ids = torch.tensor(held, dtype=torch.int64)
-    phys = _physics(params, x0)
-    fp = torch.tensor([frame_dt, rest_speed, DIVERGENCE_RADIUS], dtype=torch.float64)
-    ip = torch.tensor([batch, n, len(held), substeps, path.shape[0], check_frames, settle_frames,
-                       threads or torch.get_num_threads()], dtype=torch.int64)
-    x_out, v_out = torch.empty_like(x0), torch.empty_like(x0)
-    settled = torch.zeros(batch, dtype=torch.uint8)
-    frames = torch.zeros(batch, dtype=torch.int64)
-    diverged = torch.full((batch,), -1, dtype=torch.int64)
-    ptr = [ctypes.c_void_p(t.data_ptr()) if t is not None else None
-           for t in (fp, ip, held_ids, x0, v0, path, hold, phys, x_out, v_out, settled, frames, diverged)]
-    getattr(lib, "chain3d_move_f32" if dtype == torch.float32 else "chain3d_move_f64")(*ptr)
-    if bool((diverged >= 0).any()):
-        ids = (diverged >= 0).nonzero().flatten().tolist()
-        frame = int(diverged[ids[0]])
-        raise ChainDivergedError(
-            f"the chain diverged (NaN/inf or farther than {DIVERGENCE_RADIUS} m) for batch members {ids} at frame "
-            f"{frame} of the move (t = {frame * frame_dt:.4g} s, {path.shape[0] - 1} frames of gripper motion) with "
-            f"substeps of {frame_dt / substeps:.3g} s: use more substeps")
-    return x_out, v_out, settled.bool(), frames
+    call = _Call(x, held, path, params, substeps, frame_dt, rest_speed, check_frames, settle_frames, threads)
+    return _Move.apply(x.contiguous(), None if v is None else v.to(dtype).contiguous(),
+                       path.to(dtype).contiguous(), hold.to(dtype).contiguous(), call)
