@@ -24,11 +24,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
 from diffdlo.chain3d import grippers as gr
-from diffdlo.chain3d.cables import CableError, cable_names
+from diffdlo.chain3d.cables import FRAME_DT, CableError, cable_names
+from diffdlo.chain3d.chain import rollout
 from diffdlo.envs.cable3d import BatchedCable3D
 from diffdlo.tasks import cable3d as rules
 from diffdlo.utils.files import OutBusyError, check_fresh_out, out_lock, write_json_atomic
@@ -134,7 +136,7 @@ def run_episode(core: BatchedCable3D, planner, seed: int, progress: bool = True,
     moves0, plan_s, steps, success = planner.sim_moves, 0.0, 0, False
     bar = tqdm(total=core.max_steps, desc=f"{planner.name} {core.cable.name} seed {seed}", disable=not progress,
                leave=False, dynamic_ncols=True)
-    blind = None
+    blind, actions, frames = None, [], []
     while not success and steps < core.max_steps:
         t0 = time.perf_counter()
         if open_loop:
@@ -147,6 +149,8 @@ def run_episode(core: BatchedCable3D, planner, seed: int, progress: bool = True,
             action = planner.plan(core.x[0], target)
         plan_s += time.perf_counter() - t0
         _, _, terminated, _, info = core.step(action.reshape(1, -1))
+        actions.append(action.reshape(-1).tolist())
+        frames.append(int(info["frames"][0]))
         steps += 1
         errors.append(float(info["marker_error"][0]))
         worst.append(float(info["worst_marker_error"][0]))
@@ -156,6 +160,7 @@ def run_episode(core: BatchedCable3D, planner, seed: int, progress: bool = True,
     bar.close()
     return {"seed": seed, "success": success, "steps": steps, "errors": errors, "worst_errors": worst,
             "plan_seconds_per_move": plan_s / max(steps, 1), "sim_moves": planner.sim_moves - moves0,
+            "actions": actions, "frames": frames,
             "start": start.tolist(), "target": target.tolist(), "final": core.x[0].tolist()}
 
 
@@ -181,6 +186,59 @@ def draw(episodes: list[dict[str, Any]], path: Path) -> None:
     fig.axes[0].legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def replay(core: BatchedCable3D, episode: dict[str, Any], every: int = 5) -> torch.Tensor:
+    """(F, N, 3) the cable every ``every`` frames through an episode's moves, replayed on the chain (its physics:
+    the grippers' path, then the hold for as many frames as each move's settle took in the env)."""
+    cable = core.cable
+    mask = torch.zeros(cable.n_nodes, dtype=torch.bool)
+    mask[list(cable.held)] = True
+    x = torch.tensor(episode["start"], dtype=torch.float64)[None]
+    shown = [x[0]]
+    for action, used in zip(episode["actions"], episode["frames"]):
+        goal = rules.decode_action(torch.tensor([action], dtype=torch.float64), gr.poses_of(x), cable)
+        path = gr.gripper_path(gr.poses_of(x), goal, cable, core.move_frames)
+        hold = gr.held_markers(goal, cable)[None].expand(max(used - core.move_frames, 0) + 1, -1, -1, -1)
+        with torch.no_grad():
+            moving, v = rollout(x, None, mask, path, cable.params, cable.substeps, frame_dt=FRAME_DT,
+                                return_velocities=True)
+            held = rollout(moving[-1], v[-1], mask, hold, cable.params, cable.substeps, frame_dt=FRAME_DT)
+        trajectory = torch.cat([moving[1:], held[1:]])[:, 0]
+        shown += list(trajectory[every - 1::every]) + [trajectory[-1]]
+        x = trajectory[-1:]
+    return torch.stack(shown)
+
+
+def draw_gif(core: BatchedCable3D, episode: dict[str, Any], path: Path, every: int = 5) -> None:
+    """A GIF of an episode in 3-D at a fifth of real time (every ``every``-th 10 ms frame, 20 frames/s): the cable
+    (blue), its held markers (black), the target (dashed)."""
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    from diffdlo.utils.render import _pyplot
+    plt = _pyplot()
+    frames = replay(core, episode, every).numpy()
+    target = np.asarray(episode["target"])
+    points = np.concatenate([frames.reshape(-1, 3), target])
+    low, high = points.min(0) - 0.02, points.max(0) + 0.02
+    held = list(core.cable.held)
+    fig = plt.figure(figsize=(4.5, 4.5))
+    ax = fig.add_subplot(projection="3d")
+
+    def draw(i: int):
+        ax.clear()
+        ax.plot(*target.T, color="k", ls="--", label="target")
+        ax.plot(*frames[i].T, color="tab:blue", marker="o", ms=3, label="cable")
+        ax.plot(*frames[i, held].T, color="k", marker="s", ms=4, ls="none", label="held")
+        ax.set_xlim(low[0], high[0]), ax.set_ylim(low[1], high[1]), ax.set_zlim(low[2], high[2])
+        ax.set_box_aspect(tuple((high - low).tolist()))                        # metres alike on every axis
+        ax.locator_params(nbins=4)
+        ax.set_title(f"{core.cable.name}, seed {episode['seed']}: t = {i * every * FRAME_DT:.2f} s", fontsize=9)
+        ax.legend(loc="upper left", fontsize=7)
+
+    anim = FuncAnimation(fig, draw, frames=len(frames))
+    anim.save(path, writer=PillowWriter(fps=20))
     plt.close(fig)
 
 
@@ -218,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--quiet", action="store_true")
+    ap.add_argument("--no-gif", action="store_true", help="skip the first episode's GIF")
     args = ap.parse_args(argv)
     if args.episodes < 1 or args.max_steps < 1:
         ap.error(f"--episodes and --max-steps must be >= 1, got {args.episodes} and {args.max_steps}")
@@ -285,6 +344,8 @@ def main(argv: list[str] | None = None) -> int:
             write_json_atomic(out / "results.json", {**summary, "episode_records": episodes})
             try:
                 draw(episodes, out / "shapes.png")
+                if not args.no_gif:
+                    draw_gif(core, episodes[0], out / "episode_0.gif")
             except ImportError:
                 pass
     except OutBusyError as exc:

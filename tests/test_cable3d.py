@@ -216,6 +216,12 @@ def test_the_planners_command_writes_its_results_and_refuses_bad_flags(tmp_path,
     assert cli.main(argv) == 0
     results = json.loads((out / "results.json").read_text())
     assert results["cable"] == "DLO3" and results["episodes"] == 1 and len(results["episode_records"]) == 1
+    episode = results["episode_records"][0]
+    assert len(episode["actions"]) == len(episode["frames"]) == episode["steps"] == 1
+    core = BatchedCable3D(1, cable="DLO3", move_time=0.05, settle_time=0.1)
+    frames = cli.replay(core, episode, every=2)              # the GIF's frames: the episode replayed on the chain
+    assert float((frames[-1] - torch.tensor(episode["final"], dtype=F64)).abs().max()) < 1e-5
+    assert len(frames) == 1 + episode["frames"][0] // 2 + 1 and (out / "episode_0.gif").stat().st_size > 0
     with pytest.raises(SystemExit):
         cli.main(argv)                                                # an earlier run is not replaced
     assert "--overwrite" in capsys.readouterr().err

@@ -1,8 +1,8 @@
 """Speed of the 3-D two-gripper task (DiffDLO/Cable3D-v0, docs/CABLE3D.md), the fused C++ kernel against the eager
 chain in one run: env steps per second at several batch sizes (one step: the grippers' 1 s motion and the settle,
 capped at ``--settle-time``, the env's 5 s by default; the same seeds and actions on both engines), one CEM
-planning step (the planner's defaults), forward + backward through one move (the eager path: the kernel has no
-adjoint), and how long each cable takes to come to rest after a random move (the settle's share of a step).
+planning step (the planner's defaults), forward + backward through one move (the kernel's adjoint against the eager
+chain's autograd), and how long each cable takes to come to rest after a random move (the settle's share of a step).
 
     python benchmarks/speed/cable3d_speed.py                       # DLO3, B = 1 64 1024, float32, 2 threads
     python benchmarks/speed/cable3d_speed.py --batches 1 64 --cable DLO5 --dtype float64
@@ -48,15 +48,17 @@ def planning_step(cable: str, dtype: torch.dtype, engine: str) -> float:
     return time.perf_counter() - t0
 
 
-def backward_move(cable: str, dtype: torch.dtype) -> tuple[float, float]:
-    core = BatchedCable3D(1, cable=cable, dtype=dtype)
-    core.seed([0])
+def backward_move(cable: str, dtype: torch.dtype, batch: int, engine: str) -> tuple[float, float]:
+    """Seconds of one move of B cables (1 s of motion, the settle capped at 1 s as the planners' is) forward, and
+    of the backward of a loss on where it leaves them, w.r.t. the grippers' goal."""
+    core = BatchedCable3D(batch, cable=cable, dtype=dtype)
+    core.seed(list(range(batch)))
     core.reset()
-    shift = torch.zeros(1, 2, 3, dtype=dtype, requires_grad=True)
+    shift = torch.zeros(batch, 2, 3, dtype=dtype, requires_grad=True)
     poses = gr.poses_of(core.x)
     t0 = time.perf_counter()
     out = gr.move(core.x, None, gr.Grippers(poses.pos + shift, poses.dirs), core.cable, move_frames=core.move_frames,
-                  rest_speed=core.rest_speed, check_frames=10, settle_frames=100)
+                  rest_speed=core.rest_speed, check_frames=10, settle_frames=100, engine=engine)
     forward = time.perf_counter() - t0
     rules.marker_errors(out.x, core.target).mean().backward()
     return forward, time.perf_counter() - t0 - forward
@@ -97,9 +99,11 @@ def main(argv: list[str] | None = None) -> int:
     fast, slow = (planning_step(args.cable, dtype, e) for e in ("auto", "eager"))
     print(f"one CEM planning step (128 candidates x 5 iterations, horizon 1): kernel {fast:.3f} s, eager {slow:.2f} s "
           f"({slow / fast:.0f}x)")
-    forward, backward = backward_move(args.cable, dtype)
-    print(f"one move (1 s motion + 1 s settle), B = 1, eager with autograd: forward {forward:.2f} s, backward "
-          f"{backward:.2f} s")
+    print("\n| one move (1 s motion + up to 1 s settle), forward + backward | kernel [s] | eager [s] | kernel / eager |"
+          "\n|---|---|---|---|")
+    for b in (1, 8):
+        fast, slow = (sum(backward_move(args.cable, dtype, b, e)) for e in ("auto", "eager"))
+        print(f"| B = {b} | {fast:.3f} | {slow:.2f} | {slow / fast:.0f}x |")
     if args.rest:
         print("\n| cable | seconds to rest after a random move (< 1 cm/s): median / max |\n|---|---|")
         for name in cable_names():
