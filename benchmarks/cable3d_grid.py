@@ -71,7 +71,7 @@ def collect(out: Path, record: Path | None) -> int:
         moves = f"{sum(e['steps'] for e in solved) / len(solved):.1f}" if solved else "-"
         plan = sum(s["plan_seconds_per_move"] for s in seeds) / len(seeds)
         print(f"| {key} | {len(seeds)} x {len(eps) // len(seeds)} | {100 * len(solved) / len(eps):.0f} % | {moves} | "
-              f"{finals[len(finals) // 2]:.2f} / {finals[-1]:.2f} | {plan:.1f} |")
+              f"{finals[len(finals) // 2]:.2f} / {finals[-1]:.2f} | {plan:.2f} |")
     if record is not None:
         write_json_atomic(record, {"command": "python -m benchmarks.cable3d_grid --run --out OUT, then --collect OUT",
                                    "rows": rows})

@@ -77,6 +77,12 @@ class CEMPlanner:
                        init_std=0.3, generator=torch.Generator().manual_seed(seed))
         self.sim_moves = 0
 
+    def reset(self, seed: int) -> None:
+        """A new episode: the search distribution back to its prior (no warm start from another episode's plan),
+        the generator seeded with the episode's seed."""
+        self.cem.reset()
+        self.cem.gen.manual_seed(seed)
+
     def plan_sequence(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """The best (H, 12) sequence from the cable ``x`` at rest (open loop: all executed blind)."""
         objective = ChainObjective(self.core, x, target, self.plan_settle)
@@ -100,6 +106,10 @@ class GradientPlanner:
         self.plan_settle = rules.frames_of(plan_settle, "--plan-settle")
         self.gen = torch.Generator().manual_seed(seed)
         self.sim_moves = 0
+
+    def reset(self, seed: int) -> None:
+        """A new episode: the first guesses' generator seeded with the episode's seed."""
+        self.gen.manual_seed(seed)
 
     def plan(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         objective = ChainObjective(self.core, x, target, self.plan_settle)
@@ -129,6 +139,7 @@ def run_episode(core: BatchedCable3D, planner, seed: int, progress: bool = True,
     (closed loop) or, ``open_loop``, one plan of the planner's horizon made at the start and executed blind; the
     record and the start, target and final markers."""
     core.seed([seed])
+    planner.reset(seed)                  # each episode on its own: the same seed, the same episode, wherever it runs
     core.reset()
     start, target = core.x[0].clone(), core.target[0].clone()
     errors = [float(core.info()["marker_error"][0])]
