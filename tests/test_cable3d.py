@@ -178,7 +178,7 @@ def test_an_episode_is_reproducible_and_the_vector_env_matches_the_single_one(sh
 
 
 def test_bad_env_options_are_refused_by_name(short_cable):
-    for kwargs, match in [({"target": "recorded"}, r"target must be one of \['reachable'\], got 'recorded'"),
+    for kwargs, match in [({"target": "drawn"}, r"target must be one of \['reachable', 'recorded'\], got 'drawn'"),
                           ({"move_time": 0}, r"move_time must be a positive number of seconds, got 0"),
                           ({"success_tol": -1.0}, r"success_tol must be a positive finite number, got -1.0"),
                           ({"max_steps": 0}, r"max_steps must be a positive integer, got 0")]:
@@ -305,7 +305,7 @@ def test_the_grid_collects_its_cells_and_skips_finished_ones(tmp_path, capsys):
     assert cable3d_grid.run(tmp_path, "cem", ["DLO3"], [0, 1], 2) == 0          # both done: nothing run
     assert cable3d_grid.main(["--collect", str(tmp_path), "--record", str(tmp_path / "record.json")]) == 0
     out = capsys.readouterr().out
-    assert "| cem DLO3 | 2 x 2 | 75 % | 2.0 | 0.80 / 2.00 | 2.0 |" in out
+    assert "| cem DLO3 | 2 x 2 | 75 % | 2.0 | 0.80 / 2.00 | 2.00 |" in out
     record = json.loads((tmp_path / "record.json").read_text())
     assert len(record["rows"]["cem DLO3"]) == 2
 
