@@ -161,8 +161,8 @@ def test_env_episodes_are_the_same_on_both_engines():
 def test_without_a_compiler_one_warning_then_the_eager_path(monkeypatch, tmp_path):
     cable = load_cable("DLO3")
     x, goal = start_and_goal(cable, 1, torch.float64)
-    monkeypatch.setattr(kernel, "_lib", None)
-    monkeypatch.setattr(kernel, "_error", None)
+    monkeypatch.setattr(kernel._library, "lib", None)
+    monkeypatch.setattr(kernel._library, "error", None)
     monkeypatch.setenv("DIFFDLO_CACHE", str(tmp_path))
     monkeypatch.setattr(kernel, "_compiler", lambda: None)
     with pytest.warns(diffdlo.KernelUnavailableWarning, match=r"(?s)3-D chain is unavailable \(no C\+\+ compiler"):

@@ -143,8 +143,8 @@ def test_backend_selection_and_fallback(params, monkeypatch):
         diffdlo.Simulator(dataclasses.replace(params, controller="pid"), backend="kernel")
     with pytest.raises(ValueError, match="backend must be one of"):
         diffdlo.Simulator(params, backend="fast")
-    monkeypatch.setattr(kernel, "_lib", None)
-    monkeypatch.setattr(kernel, "_error", "no C++ compiler found (set $CXX or install g++)")
+    monkeypatch.setattr(kernel._library, "lib", None)
+    monkeypatch.setattr(kernel._library, "error", "no C++ compiler found (set $CXX or install g++)")
     with pytest.raises(RuntimeError, match="backend 'kernel' is unavailable: no C\\+\\+ compiler"):
         diffdlo.Simulator(params, backend="kernel")
     sim = diffdlo.Simulator(params)                   # auto falls back to the torch path

@@ -102,8 +102,8 @@ def test_a_source_checkout_reads_the_repository_params():
 @pytest.fixture
 def fresh_kernel(monkeypatch, tmp_path):
     """The kernel as in a new process: not built yet, cache in tmp_path. Restored after the test."""
-    monkeypatch.setattr(kernel, "_lib", None)
-    monkeypatch.setattr(kernel, "_error", None)
+    monkeypatch.setattr(kernel._library, "lib", None)
+    monkeypatch.setattr(kernel._library, "error", None)
     monkeypatch.setenv("DIFFDLO_CACHE", str(tmp_path))
 
 

@@ -12,7 +12,6 @@ says so and the eager path runs.
 from __future__ import annotations
 
 import ctypes
-import threading
 import warnings
 from importlib import resources
 from typing import Any, Callable
@@ -27,9 +26,6 @@ SOURCE = resources.files(__package__) / "csrc" / "chain3d.cpp"
 _SCALARS = ("EI", "EA", "axial_damping", "bending_damping", "gravity", "floor_height", "floor_stiffness",
             "floor_damping", "floor_width")           # chain3d.cpp's enum Scalar, in its order
 
-_lock = threading.Lock()
-_lib: ctypes.CDLL | None = None
-_error: str | None = None
 _compiler = native.find_compiler
 
 
@@ -44,21 +40,18 @@ def _build() -> ctypes.CDLL:
     return lib
 
 
+def _warn_unavailable(reason: str) -> None:
+    warnings.warn(f"diffdlo: the fused C++ kernel of the 3-D chain is unavailable ({reason}), so the two-gripper "
+                  f"task's moves run on the eager PyTorch path, about 15-75x slower. Install a C++ compiler (g++, "
+                  f"e.g. `apt install g++`, or clang++) or point $CXX at a working one, then restart Python.",
+                  KernelUnavailableWarning)
+
+
+_library = native.Library(lambda: _build(), _warn_unavailable)
+
+
 def _load() -> ctypes.CDLL | None:
-    global _lib, _error
-    if _lib is None and _error is None:
-        with _lock:
-            if _lib is None and _error is None:
-                try:
-                    _lib = _build()
-                except (RuntimeError, OSError) as exc:
-                    _error = str(exc)
-                    warnings.warn(
-                        f"diffdlo: the fused C++ kernel of the 3-D chain is unavailable ({_error}), so the "
-                        f"two-gripper task's moves run on the eager PyTorch path, about 30-100x slower. Install a C++ "
-                        f"compiler (g++, e.g. `apt install g++`, or clang++) or point $CXX at a working one, then "
-                        f"restart Python.", KernelUnavailableWarning)
-    return _lib
+    return _library.load()
 
 
 def available() -> bool:
@@ -68,7 +61,7 @@ def available() -> bool:
 
 def unavailable_reason() -> str | None:
     _load()
-    return _error
+    return _library.error
 
 
 def params_need_grad(params: ChainParams) -> bool:

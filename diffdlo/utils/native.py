@@ -15,8 +15,9 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 # -march=native: the lane-group loops vectorize across chains with the widest vectors this CPU has (the cache key
 # includes the CPU, so a cached build never runs on another model); -fno-math-errno lets sqrt vectorize.
@@ -66,3 +67,24 @@ def build(source: Any, shown_as: str, what: str, compiler: str | None, flags: li
                 raise RuntimeError(f"{compiler} failed to build {shown_as}:\n{result.stderr[-2000:]}")
             os.replace(out, target)     # atomic: concurrent processes never load a half-written file
     return ctypes.CDLL(str(target))
+
+
+class Library:
+    """A kernel's shared library, built once per process on first use: ``load()`` returns it, or None where the
+    build failed (``error`` then says why, and ``on_error`` was called with it once)."""
+
+    def __init__(self, build: Callable[[], ctypes.CDLL], on_error: Callable[[str], None]):
+        self._build, self._on_error, self._lock = build, on_error, threading.Lock()
+        self.lib: ctypes.CDLL | None = None
+        self.error: str | None = None
+
+    def load(self) -> ctypes.CDLL | None:
+        if self.lib is None and self.error is None:
+            with self._lock:
+                if self.lib is None and self.error is None:
+                    try:
+                        self.lib = self._build()
+                    except (RuntimeError, OSError) as exc:
+                        self.error = str(exc)
+                        self._on_error(self.error)
+        return self.lib

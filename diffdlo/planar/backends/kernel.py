@@ -19,7 +19,6 @@ gradient.
 from __future__ import annotations
 
 import ctypes
-import threading
 import warnings
 from importlib import resources
 from typing import NamedTuple
@@ -31,9 +30,6 @@ from ...utils import native
 SOURCE = resources.files(__package__) / "csrc" / "cable.cpp"
 FLAGS = native.FLAGS
 
-_lock = threading.Lock()
-_lib: ctypes.CDLL | None = None
-_error: str | None = None
 
 
 class KernelUnavailableWarning(RuntimeWarning):
@@ -67,17 +63,11 @@ def _build() -> ctypes.CDLL:
     return lib
 
 
+_library = native.Library(lambda: _build(), _warn_unavailable)
+
+
 def _load() -> ctypes.CDLL | None:
-    global _lib, _error
-    if _lib is None and _error is None:
-        with _lock:
-            if _lib is None and _error is None:
-                try:
-                    _lib = _build()
-                except (RuntimeError, OSError) as exc:
-                    _error = str(exc)
-                    _warn_unavailable(_error)
-    return _lib
+    return _library.load()
 
 
 def available() -> bool:
@@ -87,7 +77,7 @@ def available() -> bool:
 
 def unavailable_reason() -> str | None:
     _load()
-    return _error
+    return _library.error
 
 
 def library_path() -> str | None:
