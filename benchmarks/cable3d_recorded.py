@@ -5,7 +5,8 @@ marker errors and how many frames that rest shape would already count as a succe
 What a planner reaches beyond that it reaches by putting the grippers elsewhere.
 
     python -m benchmarks.cable3d_recorded --data DEFORM/data_set
-    python -m benchmarks.cable3d_recorded --data DEFORM/data_set --cables DLO3 --out runs/recorded_static.json
+    python -m benchmarks.cable3d_recorded --data DEFORM/data_set --out docs/results/cable3d_recorded_static.json \
+        --overwrite
 """
 from __future__ import annotations
 
@@ -47,7 +48,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, required=True, help="DEFORM's data_set folder")
     ap.add_argument("--cables", nargs="+", default=cable_names(), choices=cable_names())
     ap.add_argument("--out", type=Path, default=None, help="also write the rows here (JSON)")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
     args = ap.parse_args(argv)
+    if args.out is not None and args.out.exists() and not args.overwrite:
+        ap.error(f"--out {args.out} exists: give --overwrite to replace it, or another --out")
     rows = []
     print("| cable | targets | their speed [m/s] (10 / 50 / 90 %) | the chain at rest at the recorded grippers: mean "
           "error [cm] (10 / 50 / 90 %) | worst [cm] | already a success |\n|---|---|---|---|---|---|")

@@ -365,3 +365,22 @@ def test_the_planners_command_plans_towards_recorded_shapes_and_wants_data_with_
         with pytest.raises(SystemExit):
             main(argv + ["--out", str(tmp_path / "never")])
         assert "--data goes with --target recorded and only with it" in capsys.readouterr().err
+
+
+def test_the_recorded_benchmark_puts_the_chain_at_rest_at_the_recorded_grippers(tmp_path, capsys):
+    """On recordings of hung (not settled) shapes: the chain at rest differs from them, the row says so and is
+    written once; a second write needs --overwrite."""
+    import json
+
+    from benchmarks import cable3d_recorded
+    fake_recordings(tmp_path / "data" / "DLO3" / "eval", load_cable("DLO3"))
+    out = tmp_path / "static.json"
+    argv = ["--data", str(tmp_path / "data"), "--cables", "DLO3", "--out", str(out)]
+    assert cable3d_recorded.main(argv) == 0
+    row = json.loads(out.read_text())["rows"][0]
+    assert row["cable"] == "DLO3" and row["targets"] == 2 * rules.RECORDED_PER_RECORDING
+    assert row["mean_error_cm_q10_50_90"][1] > 0 and "| DLO3 | 10 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        cable3d_recorded.main(argv)
+    assert "exists: give --overwrite" in capsys.readouterr().err
+    assert cable3d_recorded.main(argv + ["--overwrite"]) == 0

@@ -37,6 +37,31 @@ def steps_per_second(cable: str, batch: int, dtype: torch.dtype, settle_time: fl
     return steps * batch / (time.perf_counter() - t0)
 
 
+def kernel_share(cable: str, dtype: torch.dtype, steps: int = 200) -> tuple[float, float]:
+    """(ms per env step at B = 1, the share of it inside the kernel's call): the rest is the env's torch work around
+    it (the action's decode, the gripper path, observations, metrics)."""
+    core = BatchedCable3D(1, cable=cable, dtype=dtype)
+    core.seed([0])
+    core.reset()
+    generator = torch.Generator().manual_seed(0)
+    inner, spent = kernel._Move.forward, [0.0]
+
+    def timed(ctx, *args):
+        t0 = time.perf_counter()
+        out = inner(ctx, *args)
+        spent[0] += time.perf_counter() - t0
+        return out
+    kernel._Move.forward = staticmethod(timed)
+    try:
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            core.step(torch.rand(1, rules.ACTION_DIM, generator=generator, dtype=dtype) * 2 - 1)
+        total = time.perf_counter() - t0
+    finally:
+        kernel._Move.forward = staticmethod(inner)
+    return 1000 * total / steps, spent[0] / total
+
+
 def planning_step(cable: str, dtype: torch.dtype, engine: str) -> float:
     from planners.cable3d import CEMPlanner
     core = BatchedCable3D(1, cable=cable, dtype=dtype, engine=engine)
@@ -96,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     for b in args.batches:
         fast, slow = (steps_per_second(args.cable, b, dtype, args.settle_time, e) for e in ("auto", "eager"))
         print(f"| {b} | {fast:,.0f} | {slow:,.1f} | {fast / slow:.0f}x |")
+    ms, share = kernel_share(args.cable, dtype)
+    print(f"B = 1: {ms:.2f} ms an env step, {100 * share:.0f} % of it in the kernel's call")
     fast, slow = (planning_step(args.cable, dtype, e) for e in ("auto", "eager"))
     print(f"one CEM planning step (128 candidates x 5 iterations, horizon 1): kernel {fast:.3f} s, eager {slow:.2f} s "
           f"({slow / fast:.0f}x)")

@@ -12,7 +12,7 @@ and frozen (batch members never influence each other), the others go on up to ``
 The chain is diffdlo/chain3d/chain.py's ``rollout`` (gravity, stretching, bending, drag, internal damping), so the
 whole move is differentiable with respect to the start state, the goal poses and the cable's parameters. On the CPU,
 without ``accel`` and with no gradient wanted w.r.t. the cable's parameters, ``engine="auto"`` runs the same move on
-the fused C++ kernel and its adjoint (diffdlo/chain3d/kernel.py), 30-100x faster; ``engine="eager"`` forces the
+the fused C++ kernel and its adjoint (diffdlo/chain3d/kernel.py), about 40-200x faster (benchmarks/speed/cable3d_speed.py); ``engine="eager"`` forces the
 torch path.
 Pure batched functions of tensors; device and dtype follow the state.
 """

@@ -42,7 +42,7 @@ def _build() -> ctypes.CDLL:
 
 def _warn_unavailable(reason: str) -> None:
     warnings.warn(f"diffdlo: the fused C++ kernel of the 3-D chain is unavailable ({reason}), so the two-gripper "
-                  f"task's moves run on the eager PyTorch path, about 15-75x slower. Install a C++ compiler (g++, "
+                  f"task's moves run on the eager PyTorch path, about 40-200x slower. Install a C++ compiler (g++, "
                   f"e.g. `apt install g++`, or clang++) or point $CXX at a working one, then restart Python.",
                   KernelUnavailableWarning)
 

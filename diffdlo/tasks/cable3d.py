@@ -14,7 +14,7 @@ held at both ends by two grippers, brought to a target shape by moves of both gr
 - **Target** "reachable": the markers where the model itself takes the start by ``REACH_MOVES`` random actions: a shape
   every cable can reach, always solvable. "recorded" (with DEFORM's recordings, ``recorded_targets``): a shape the
   real cable took, one of the ``RECORDED_PER_RECORDING`` slowest frames of each eval recording (the real cables are
-  never at rest there: these frames' fastest free marker moves at 2-50 cm/s), its grippers within reach; the start
+  never at rest there: these frames' fastest free marker moves at about 0.1-1 m/s), its grippers within reach; the start
   hung at the grippers' poses of another frame of the same recording, at least ``START_GAP`` frames away.
 - **Success**: at rest, the markers' mean distance to the target's under ``success_tol`` (1 cm) and the worst under
   ``success_worst_tol`` (2 cm). **Reward**: 100 x (mean marker error before - after) [cm], ``success_bonus`` on
