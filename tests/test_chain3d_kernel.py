@@ -13,7 +13,7 @@ import diffdlo
 from diffdlo.chain3d import grippers as gr
 from diffdlo.chain3d import kernel
 from diffdlo.chain3d.cables import load_cable
-from diffdlo.chain3d.chain import ChainDivergedError
+from diffdlo.chain3d.chain import ChainDivergedError, ChainError
 from diffdlo.envs.cable3d import BatchedCable3D
 from diffdlo.tasks import cable3d as rules
 
@@ -202,3 +202,16 @@ def test_every_move_is_a_valid_start_of_the_next(seed, name):
     assert torch.allclose(out.x[:3], eager.x, rtol=0, atol=1e-10) and torch.equal(out.frames[:3], eager.frames)
     again = gr.move(out.x, out.v, rules.decode_action(-action, gr.poses_of(out.x), cable), cable, engine="kernel", **kw)
     assert bool(torch.isfinite(again.x).all())
+
+
+def test_the_kernel_refuses_what_the_eager_chain_refuses():
+    cable = load_cable("DLO3")
+    x, goal = start_and_goal(cable, 2, torch.float64)
+    bad = x.clone()
+    bad[1, 4, 2] = float("nan")
+    for engine in ("kernel", "eager"):
+        with pytest.raises(ChainError, match="x0 must be finite, got 1 non-finite"):
+            gr.move(bad, None, goal, cable, move_frames=5, settle_frames=5, engine=engine, **SETTLE)
+    broken = dataclasses.replace(cable, params=dataclasses.replace(cable.params, EA=-1.0))
+    with pytest.raises(ChainError, match="'EA'.*-1"):
+        gr.move(x, None, goal, broken, move_frames=5, settle_frames=5, engine="kernel", **SETTLE)

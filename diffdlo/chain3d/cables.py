@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.speeds and args.data is None:
         ap.error("--speeds needs --data")
     if args.speeds:
-        from .deform import RecordingError, load_split
+        from .deform import RecordingError, load_split, marker_speeds
         levels = (0.0, 0.01, 0.1, 0.5)
         print(f"fastest marker speed per frame [m/s] (central differences), quantiles {levels}")
         for number, spec in sorted(CABLES.items()):
@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
                 recordings = load_split(args.data, number, "eval")
             except RecordingError as exc:
                 ap.error(str(exc))
-            v = torch.cat([(x[2:] - x[:-2]).norm(dim=-1) / (2 * FRAME_DT) for x in recordings.values()])
+            v = torch.cat([marker_speeds(x) for x in recordings.values()])
             q = torch.tensor(levels, dtype=v.dtype)
             free, held = torch.quantile(v[:, 2:-2].amax(-1), q), torch.quantile(v[:, [0, -1]].amax(-1), q)
             print(f"{spec.name}: {v.shape[0]} frames; free markers {[round(x, 3) for x in free.tolist()]}, held "

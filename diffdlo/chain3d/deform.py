@@ -183,6 +183,12 @@ def load_recording(path: Path | str) -> torch.Tensor:
     return torch.tensor(values, dtype=torch.float64).transpose(1, 2).contiguous()
 
 
+def marker_speeds(positions: torch.Tensor) -> torch.Tensor:
+    """(T, n, 3) a recording's markers -> (T - 2, n) each marker's speed [m/s] at frames 1 ... T - 2 (central
+    differences over DT)."""
+    return (positions[2:] - positions[:-2]).norm(dim=-1) / (2 * DT)
+
+
 def _split_dir(data_dir: Path, cable: int, split: str) -> Path:
     """data_dir/DLO{cable}/{split}, or data_dir/data_set/DLO{cable}/{split} when data_dir is DEFORM's checkout."""
     direct = data_dir / f"DLO{cable}" / split

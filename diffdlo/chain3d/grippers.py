@@ -12,8 +12,8 @@ and frozen (batch members never influence each other), the others go on up to ``
 The chain is diffdlo/chain3d/chain.py's ``rollout`` (gravity, stretching, bending, drag, internal damping), so the
 whole move is differentiable with respect to the start state, the goal poses and the cable's parameters. On the CPU,
 without ``accel`` and with no gradient wanted w.r.t. the cable's parameters, ``engine="auto"`` runs the same move on
-the fused C++ kernel and its adjoint (diffdlo/chain3d/kernel.py), about 40-200x faster (benchmarks/speed/cable3d_speed.py); ``engine="eager"`` forces the
-torch path.
+the fused C++ kernel and its adjoint (diffdlo/chain3d/kernel.py), about 40-200x faster
+(benchmarks/speed/cable3d_speed.py); ``engine="eager"`` forces the torch path.
 Pure batched functions of tensors; device and dtype follow the state.
 """
 from __future__ import annotations
@@ -151,13 +151,12 @@ def move(x: torch.Tensor, v: torch.Tensor | None, goal: Grippers, cable: Cable, 
          engine: str = "auto") -> MoveResult:
     """Both grippers from their poses in ``x`` (B, N, 3) to ``goal`` along the minimum-jerk path over
     ``move_frames`` frames, then held there while the cable comes to rest (``settle``; ``accel`` as there)."""
-    mask = _held_mask(cable, x.device)
     path = gripper_path(poses_of(x), goal, cable, move_frames)
     if _on_kernel(engine, x, cable, accel):
         return MoveResult(*kernel.move(x, v, cable.held, path, held_markers(goal, cable), cable.params,
                                        cable.substeps, frame_dt=FRAME_DT, rest_speed=rest_speed,
                                        check_frames=check_frames, settle_frames=settle_frames))
-    xs, vs = rollout(x, v, mask, path, cable.params, cable.substeps, frame_dt=FRAME_DT, return_velocities=True,
+    xs, vs = rollout(x, v, _held_mask(cable, x.device), path, cable.params, cable.substeps, frame_dt=FRAME_DT, return_velocities=True,
                      accel=accel)
     out = settle(xs[-1], vs[-1], goal, cable, rest_speed=rest_speed, check_frames=check_frames,
                  settle_frames=settle_frames, accel=accel, engine="eager")

@@ -20,7 +20,8 @@ import torch
 
 from ..planar.backends.kernel import KernelUnavailableWarning
 from ..utils import native
-from .chain import DIVERGENCE_RADIUS, ChainDivergedError, ChainParams, _resolve
+from .chain import (DIVERGENCE_RADIUS, ChainDivergedError, ChainError, ChainParams, _check_rollout_inputs,
+                    _resolve)
 
 SOURCE = resources.files(__package__) / "csrc" / "chain3d.cpp"
 _SCALARS = ("EI", "EA", "axial_damping", "bending_damping", "gravity", "floor_height", "floor_stiffness",
@@ -160,6 +161,13 @@ def move(x: torch.Tensor, v: torch.Tensor | None, held: tuple[int, ...], path: t
     at most ``settle_frames``). Returns (x, v, settled, frames) as grippers.MoveResult's fields, differentiable
     w.r.t. x, v, path and hold. ChainDivergedError for a chain that runs away, naming it and the frame."""
     dtype = x.dtype
+    held_mask = torch.zeros(x.shape[1], dtype=torch.bool)
+    held_mask[list(held)] = True
+    _check_rollout_inputs(x, v, held_mask, path.to(dtype), substeps, frame_dt, None)    # the eager chain's checks
+    params.check(x.shape[0], x.shape[1])
+    if not torch.is_tensor(hold) or tuple(hold.shape) != (x.shape[0], len(held), 3):
+        raise ChainError(f"hold must have shape ({x.shape[0]}, {len(held)}, 3), got "
+                         f"{tuple(hold.shape) if torch.is_tensor(hold) else type(hold).__name__}")
     call = _Call(x, held, path, params, substeps, frame_dt, rest_speed, check_frames, settle_frames, threads)
     return _Move.apply(x.contiguous(), None if v is None else v.to(dtype).contiguous(),
                        path.to(dtype).contiguous(), hold.to(dtype).contiguous(), call)

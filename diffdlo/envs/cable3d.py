@@ -28,11 +28,11 @@ INFO_KEYS = ("marker_error", "worst_marker_error", "at_rest", "is_success", "fra
 class BatchedCable3D:
     """B episodes of the 3-D two-gripper task on one cable (``cable``: a name of params/cables3d.yaml, a
     ``chain3d.cables.Cable``, or None for the file's default; ``residual``: a diffdlo.chain3d.residual network
-    trained on that cable, added to its physics: the stand-in for the real cable). ``move_time``, ``settle_time`` [s], ``rest_speed``
-    [m/s]: a move's gripper motion, its settle's cap and rest threshold; ``success_tol``, ``success_worst_tol`` [m]:
+    trained on that cable, added to its physics: the stand-in for the real cable). ``move_time``, ``settle_time``
+    [s], ``rest_speed`` [m/s]: a move's gripper motion, its settle's cap and rest threshold; ``success_tol``, ``success_worst_tol`` [m]:
     the mean and worst marker error of a success; ``max_steps`` moves an episode. dtype float64 or float32.
     ``target`` "reachable", or "recorded" with ``data`` DEFORM's data_set folder (tasks/cable3d.py's rules).
-    ``engine``: "auto" runs the moves on the fused C++ kernel where no gradient is wanted (grippers.move), "eager"
+    ``engine``: "auto" runs the moves on the fused C++ kernel unless a residual is given (grippers.move), "eager"
     on the torch path (the reference; the two agree to rounding)."""
 
     def __init__(self, num_envs: int = 1, cable: str | Cable | None = None, target: str = "reachable",

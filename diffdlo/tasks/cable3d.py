@@ -24,6 +24,7 @@ Pure batched functions of tensors; device and dtype follow the inputs.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -132,14 +133,13 @@ def hang(grippers: Grippers, cable: Cable) -> torch.Tensor:
     return torch.cat([held[:, :2], inner, held[:, 2:]], 1)
 
 
+@dataclasses.dataclass(frozen=True)
 class RecordedTargets:
-    """DEFORM's eval recordings of one cable as targets: ``recordings`` [(T, N, 3)], ``targets`` [(recording, frame)],
-    ``speeds`` [m/s] (each target frame's fastest free marker, central differences) and ``reachable`` [[bool] per
-    frame] (the frame's grippers within reach)."""
-
-    def __init__(self, recordings: list[torch.Tensor], targets: list[tuple[int, int]], speeds: list[float],
-                 reachable: list[list[bool]]):
-        self.recordings, self.targets, self.speeds, self.reachable = recordings, targets, speeds, reachable
+    """DEFORM's eval recordings of one cable as targets."""
+    recordings: list[torch.Tensor]         # [(T, N, 3)] the markers of each recording [m]
+    targets: list[tuple[int, int]]         # (recording, frame) of each target
+    speeds: list[float]                    # [m/s] each target frame's fastest free marker (central differences)
+    reachable: list[list[bool]]            # per recording and frame: its grippers within reach
 
     def draw(self, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """(start frame's markers, target markers) (N, 3) of one drawn target: the start a frame of the same
@@ -166,7 +166,7 @@ def recorded_targets(data_dir, cable: Cable) -> RecordedTargets:
         ends = x[:, [0, -1]]
         reach.append(((keep_reachable(ends, cable) - ends).norm(dim=-1).amax(-1) < 1e-3).tolist())
         speed = torch.full((x.shape[0],), math.inf, dtype=x.dtype)
-        speed[1:-1] = ((x[2:] - x[:-2]) / (2 * deform.DT))[:, free].norm(dim=-1).amax(-1)
+        speed[1:-1] = deform.marker_speeds(x)[:, free].amax(-1)
         chosen: list[int] = []
         for k in speed.argsort().tolist():
             if len(chosen) == RECORDED_PER_RECORDING or not math.isfinite(float(speed[k])):
